@@ -1,0 +1,674 @@
+"""Shape-completion networks: Single-View, MVP (causal Performer memory), MVT and LSTM baselines.
+
+Axis letters used in shape comments and docstrings:
+
+    B  batch (sequences)                 L  views in a sequence (time)
+    N  frames in one flat batch (B·L)    G  grid side (40); a grid is (G, G, G) indexed (i, j, k)
+    C  conv channels                     D  embedding size
+    H  attention heads                   E  head size (D / H)
+    M  random features (FAVOR+) or E (ReLU kernel)
+    T  views held in an MVT key/value cache (grows with the stream)
+
+Every model maps a causal sequence of input occupancy grids to per-view occupancy logits in the
+same grid (the latest view's camera frame), in two forms that give the same numbers:
+
+* parallel: ``model(seq)`` (B, L, G, G, G) -> logits (B, L, G, G, G);
+* streaming: ``state = model.init_state(B)``, then ``logits, state = model.step(state, frame)``
+  with frame (B, G, G, G) -> logits (B, G, G, G).
+
+A state is a flat ``dict[str, Tensor]`` (see :func:`state_to_bytes`). The view counter ``"t"`` is
+a 0-d int64 tensor; the MVP memory (S, z) has a size independent of the number of views.
+
+The four kinds share :class:`Encoder` (G³ -> D) and :class:`Decoder` (D -> G³ logits), after the
+3-D CNNs of Varley et al. 2017 / Yang et al. 2018, sized to train on two CPU cores. Except for
+``single_view`` they have the paper's two towers: a local encoder sees the current frame alone; a
+context encoder feeds a causal sequence model (Performer, exact Transformer or LSTM); the two
+embeddings are added and decoded. No normalisation statistic crosses frames (GroupNorm per frame,
+LayerNorm per embedding).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import io
+import math
+import os
+from collections.abc import Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Literal, get_args
+
+import torch
+from torch import Tensor, nn
+
+from completion.performer import (
+    FeatureMap,
+    Kernel,
+    causal_linear_attention,
+    causal_softmax_attention,
+    init_linear_attention_state,
+    linear_attention_step,
+)
+
+ModelKind = Literal["single_view", "mvp", "mvt", "lstm"]
+MODEL_KINDS: tuple[str, ...] = get_args(ModelKind)
+PositionalEncoding = Literal["sinusoidal", "none"]
+Norm = Literal["group", "none"]
+
+State = dict[str, Tensor]
+KV_CACHE_SUFFIXES = (".k", ".v")
+
+CHECKPOINT_FORMAT = "mvp-grasp/completion-checkpoint"
+CHECKPOINT_VERSION = 1
+
+GRID_CONVENTION: dict[str, Any] = {
+    "shape": [40, 40, 40],
+    "axes": "grid index (i, j, k) along camera (x, y, z), OpenCV optical frame",
+    "fit": "bbox centre of observed points at index (20, 20, 18), resolution = max extent / 32",
+    "inputs": "observed surface points voxelized, occupied = 1",
+    "targets": "complete object(s), solid",
+}
+"""Stored in every checkpoint (DESIGN.md §3); training may overwrite it via ``grid=...``."""
+
+WEIGHTS_DIR = Path(__file__).resolve().parent / "weights"
+
+
+@dataclass(frozen=True)
+class ModelConfig:
+    """Everything needed to rebuild a model; stored as a plain dict inside every checkpoint.
+
+    kind: which model. grid_size: G. channels: conv channels of the encoder, one stride-2 layer
+    each (G must be divisible by 2**len(channels)); the decoder mirrors them. conv_kernel: 3 or 4.
+    norm: GroupNorm per frame after each conv, or none. embed_dim: D. n_heads: H (D % H == 0).
+    n_layers: Transformer blocks (mvp/mvt) or LSTM layers. mlp_ratio: hidden width of the block's
+    MLP in units of D. kernel: Performer kernel (mvp only). n_features: M for the FAVOR+ kernel.
+    pos_encoding / pos_base: sinusoidal encoding of the view index t, frequencies pos_base^(-2i/D).
+    seed: weight initialisation and the initial FAVOR+ draw.
+    """
+
+    kind: ModelKind = "mvp"
+    grid_size: int = 40
+    channels: tuple[int, ...] = (16, 32, 64)
+    conv_kernel: int = 4
+    norm: Norm = "none"
+    embed_dim: int = 256
+    n_heads: int = 4
+    n_layers: int = 1
+    mlp_ratio: int = 2
+    kernel: Kernel = "softmax"
+    n_features: int = 128
+    pos_encoding: PositionalEncoding = "sinusoidal"
+    pos_base: float = 10000.0
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "channels", tuple(int(c) for c in self.channels))
+        if self.kind not in MODEL_KINDS:
+            raise ValueError(f"kind must be one of {MODEL_KINDS}, got {self.kind!r}")
+        if self.kernel not in ("softmax", "relu"):
+            raise ValueError(f"kernel must be 'softmax' or 'relu', got {self.kernel!r}")
+        if self.norm not in get_args(Norm):
+            raise ValueError(f"norm must be one of {get_args(Norm)}, got {self.norm!r}")
+        if self.pos_encoding not in get_args(PositionalEncoding):
+            raise ValueError(
+                f"pos_encoding must be one of {get_args(PositionalEncoding)}, "
+                f"got {self.pos_encoding!r}"
+            )
+        if not self.channels or any(c < 1 for c in self.channels):
+            raise ValueError(
+                f"channels must be a non-empty tuple of positive ints, got {self.channels}"
+            )
+        if self.conv_kernel not in (3, 4):
+            raise ValueError(f"conv_kernel must be 3 or 4, got {self.conv_kernel}")
+        step = 2 ** len(self.channels)
+        if self.grid_size < step or self.grid_size % step:
+            raise ValueError(
+                f"grid_size {self.grid_size} must be a positive multiple of "
+                f"2**len(channels) = {step}"
+            )
+        for name in ("embed_dim", "n_heads", "n_layers", "mlp_ratio", "n_features"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
+        if self.embed_dim % self.n_heads:
+            raise ValueError(
+                f"embed_dim {self.embed_dim} must be divisible by n_heads {self.n_heads}"
+            )
+        if self.pos_encoding == "sinusoidal" and self.embed_dim % 2:
+            raise ValueError(f"sinusoidal encoding needs an even embed_dim, got {self.embed_dim}")
+        if self.norm == "group" and any(c % _groups(c) for c in self.channels):
+            raise ValueError(f"channels {self.channels} do not split into GroupNorm groups")
+
+    def to_dict(self) -> dict[str, Any]:
+        """Plain types only (lists, not tuples), loadable by ``torch.load(weights_only=True)``."""
+        out = {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
+        out["channels"] = list(self.channels)
+        return out
+
+    @classmethod
+    def from_dict(cls, data: Mapping[str, Any]) -> ModelConfig:
+        """Inverse of :meth:`to_dict`; unknown keys raise ValueError."""
+        unknown = set(data) - {f.name for f in dataclasses.fields(cls)}
+        if unknown:
+            raise ValueError(f"unknown ModelConfig fields: {sorted(unknown)}")
+        return cls(**data)
+
+    def replace(self, **changes: Any) -> ModelConfig:
+        return dataclasses.replace(self, **changes)
+
+
+DEFAULT_CONFIGS: dict[str, ModelConfig] = {
+    "single_view": ModelConfig(kind="single_view"),
+    "mvp": ModelConfig(kind="mvp", kernel="softmax"),
+    "mvp_relu": ModelConfig(kind="mvp", kernel="relu"),
+    "mvp3": ModelConfig(kind="mvp", kernel="softmax"),
+    "mvp6": ModelConfig(kind="mvp", kernel="softmax"),
+    "mvt": ModelConfig(kind="mvt"),
+    "lstm": ModelConfig(kind="lstm"),
+}
+"""Default config per shipped model name (mvp3/mvp6 differ from mvp only in training views)."""
+
+
+def default_config(name: str, **overrides: Any) -> ModelConfig:
+    """The default :class:`ModelConfig` for a model name (see :data:`DEFAULT_CONFIGS`)."""
+    if name not in DEFAULT_CONFIGS:
+        raise ValueError(f"unknown model name {name!r}; expected one of {sorted(DEFAULT_CONFIGS)}")
+    return DEFAULT_CONFIGS[name].replace(**overrides)
+
+
+def _groups(channels: int) -> int:
+    """GroupNorm groups: 4 channels per group where possible."""
+    return max(1, channels // 4)
+
+
+# --------------------------------------------------------------------------------------------
+# Shared encoder / decoder
+# --------------------------------------------------------------------------------------------
+
+
+class Encoder(nn.Module):
+    """3-D CNN, one frame at a time: (N, G, G, G) -> (N, D).
+
+    Stride-2 conv3d + ReLU per entry of ``channels`` (40³ -> 20³ -> 10³ -> 5³ by default), then a
+    dense layer to D (no activation, so the embedding can be negative for the attention).
+    """
+
+    def __init__(self, config: ModelConfig) -> None:
+        super().__init__()
+        k = config.conv_kernel
+        layers: list[nn.Module] = []
+        c_in = 1
+        for c_out in config.channels:
+            layers.append(nn.Conv3d(c_in, c_out, k, stride=2, padding=1))
+            if config.norm == "group":
+                layers.append(nn.GroupNorm(_groups(c_out), c_out))
+            layers.append(nn.ReLU())
+            c_in = c_out
+        self.convs = nn.Sequential(*layers)
+        self.bottom = config.grid_size // 2 ** len(config.channels)
+        self.dense = nn.Linear(c_in * self.bottom**3, config.embed_dim)
+
+    def forward(self, grids: Tensor) -> Tensor:
+        x = self.convs(grids.unsqueeze(1))  # (N, C, g, g, g)
+        return self.dense(x.flatten(1))  # (N, D)
+
+
+class Decoder(nn.Module):
+    """Mirror of :class:`Encoder`: (N, D) -> logits (N, G, G, G).
+
+    Dense + ReLU to the bottom feature volume, then stride-2 transposed conv3d + ReLU back up;
+    the last layer outputs one channel of logits.
+    """
+
+    def __init__(self, config: ModelConfig) -> None:
+        super().__init__()
+        k = config.conv_kernel
+        output_padding = 1 if k == 3 else 0
+        chans = list(config.channels[::-1])  # e.g. [64, 32, 16]
+        self.bottom = config.grid_size // 2 ** len(config.channels)
+        self.c_bottom = chans[0]
+        self.dense = nn.Linear(config.embed_dim, chans[0] * self.bottom**3)
+        layers: list[nn.Module] = []
+        for c_in, c_out in zip(chans, [*chans[1:], 1], strict=True):
+            layers.append(
+                nn.ConvTranspose3d(
+                    c_in, c_out, k, stride=2, padding=1, output_padding=output_padding
+                )
+            )
+            if c_out != 1:
+                if config.norm == "group":
+                    layers.append(nn.GroupNorm(_groups(c_out), c_out))
+                layers.append(nn.ReLU())
+        self.deconvs = nn.Sequential(*layers)
+
+    def forward(self, embedding: Tensor) -> Tensor:
+        g = self.bottom
+        x = torch.relu(self.dense(embedding)).view(-1, self.c_bottom, g, g, g)
+        return self.deconvs(x).squeeze(1)  # (N, G, G, G)
+
+
+# --------------------------------------------------------------------------------------------
+# Context towers (how a frame sees the past)
+# --------------------------------------------------------------------------------------------
+
+
+def sinusoidal_encoding(positions: Tensor, dim: int, *, base: float = 10000.0) -> Tensor:
+    """Sinusoidal encoding of view indices: positions (...,) int -> (..., dim) float32.
+
+    Channel 2i is sin(t·base^(-2i/dim)), channel 2i+1 is cos of the same (Vaswani et al. 2017).
+    """
+    half = torch.arange(dim // 2, dtype=torch.float32, device=positions.device)
+    freqs = torch.exp(-math.log(base) * 2.0 * half / dim)  # (dim/2,)
+    angles = positions.to(torch.float32).unsqueeze(-1) * freqs  # (..., dim/2)
+    return torch.stack((angles.sin(), angles.cos()), dim=-1).flatten(-2)
+
+
+class CausalSelfAttention(nn.Module):
+    """Multi-head causal self-attention over views, Performer (linear) or exact softmax.
+
+    ``mechanism="performer"``: φ-features with a constant-size memory S (B, H, M, E),
+    z (B, H, M). ``mechanism="exact"``: softmax(q·k/√E) with a key/value cache (B, H, T, E).
+    """
+
+    def __init__(
+        self,
+        config: ModelConfig,
+        *,
+        mechanism: Literal["performer", "exact"],
+        generator: torch.Generator | None = None,
+    ) -> None:
+        super().__init__()
+        if mechanism not in ("performer", "exact"):
+            raise ValueError(f"mechanism must be 'performer' or 'exact', got {mechanism!r}")
+        self.mechanism = mechanism
+        self.n_heads = config.n_heads
+        self.head_dim = config.embed_dim // config.n_heads
+        self.qkv = nn.Linear(config.embed_dim, 3 * config.embed_dim)
+        self.out = nn.Linear(config.embed_dim, config.embed_dim)
+        self.features: FeatureMap | None = None
+        if mechanism == "performer":
+            self.features = FeatureMap(
+                self.head_dim,
+                kernel=config.kernel,
+                n_features=config.n_features,
+                generator=generator,
+            )
+
+    def _heads(self, x: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        """x (..., D) -> q, k, v each (..., H, E)."""
+        q, k, v = self.qkv(x).chunk(3, dim=-1)
+        shape = (*x.shape[:-1], self.n_heads, self.head_dim)
+        return q.view(shape), k.view(shape), v.view(shape)
+
+    def forward(self, x: Tensor) -> Tensor:
+        """Parallel form: x (B, L, D) -> (B, L, D)."""
+        q, k, v = (t.transpose(1, 2) for t in self._heads(x))  # (B, H, L, E)
+        if self.features is not None:
+            y = causal_linear_attention(
+                self.features(q, is_query=True), self.features(k, is_query=False), v
+            )
+        else:
+            y = causal_softmax_attention(q, k, v)
+        y = y.to(x.dtype).transpose(1, 2).flatten(2)  # (B, L, D)
+        return self.out(y)
+
+    def init_state(self, batch: int, *, device: torch.device, prefix: str) -> State:
+        if self.features is not None:
+            s, z = init_linear_attention_state(
+                (batch, self.n_heads), self.features.n_features, self.head_dim, device=device
+            )
+            return {f"{prefix}S": s, f"{prefix}z": z}
+        empty = torch.zeros(batch, self.n_heads, 0, self.head_dim, device=device)
+        return {f"{prefix}k": empty, f"{prefix}v": empty.clone()}
+
+    def step(self, x: Tensor, state: State, *, prefix: str) -> tuple[Tensor, State]:
+        """Streaming form: x (B, D) -> (B, D) and this layer's new state entries."""
+        q, k, v = self._heads(x)  # (B, H, E)
+        if self.features is not None:
+            y, s, z = linear_attention_step(
+                self.features(q, is_query=True),
+                self.features(k, is_query=False),
+                v,
+                state[f"{prefix}S"],
+                state[f"{prefix}z"],
+            )
+            new = {f"{prefix}S": s, f"{prefix}z": z}
+        else:
+            keys = torch.cat((state[f"{prefix}k"], k.unsqueeze(2).to(torch.float32)), dim=2)
+            values = torch.cat((state[f"{prefix}v"], v.unsqueeze(2).to(torch.float32)), dim=2)
+            scores = (keys @ q.to(torch.float32).unsqueeze(-1)).squeeze(-1)  # (B, H, T)
+            weights = torch.softmax(scores * self.head_dim**-0.5, dim=-1)
+            y = (weights.unsqueeze(-2) @ values).squeeze(-2)  # (B, H, E)
+            new = {f"{prefix}k": keys, f"{prefix}v": values}
+        return self.out(y.to(x.dtype).flatten(1)), new
+
+
+class Block(nn.Module):
+    """Pre-LayerNorm Transformer block: x + Attn(LN x), then + MLP(LN ·) with ReLU."""
+
+    def __init__(
+        self,
+        config: ModelConfig,
+        *,
+        mechanism: Literal["performer", "exact"],
+        generator: torch.Generator | None = None,
+    ) -> None:
+        super().__init__()
+        d = config.embed_dim
+        self.norm1 = nn.LayerNorm(d)
+        self.attn = CausalSelfAttention(config, mechanism=mechanism, generator=generator)
+        self.norm2 = nn.LayerNorm(d)
+        self.mlp = nn.Sequential(
+            nn.Linear(d, config.mlp_ratio * d), nn.ReLU(), nn.Linear(config.mlp_ratio * d, d)
+        )
+
+    def forward(self, x: Tensor) -> Tensor:  # (B, L, D) -> (B, L, D)
+        x = x + self.attn(self.norm1(x))
+        return x + self.mlp(self.norm2(x))
+
+    def step(self, x: Tensor, state: State, *, prefix: str) -> tuple[Tensor, State]:
+        a, new = self.attn.step(self.norm1(x), state, prefix=prefix)  # (B, D)
+        x = x + a
+        return x + self.mlp(self.norm2(x)), new
+
+
+class AttentionTower(nn.Module):
+    """Positional encoding of the view index, causal Transformer blocks, final LayerNorm."""
+
+    def __init__(
+        self,
+        config: ModelConfig,
+        *,
+        mechanism: Literal["performer", "exact"],
+        generator: torch.Generator | None = None,
+    ) -> None:
+        super().__init__()
+        self.config = config
+        self.blocks = nn.ModuleList(
+            Block(config, mechanism=mechanism, generator=generator) for _ in range(config.n_layers)
+        )
+        self.norm = nn.LayerNorm(config.embed_dim)
+
+    def _position(self, x: Tensor, positions: Tensor) -> Tensor:
+        if self.config.pos_encoding == "none":
+            return x
+        pe = sinusoidal_encoding(positions, self.config.embed_dim, base=self.config.pos_base)
+        return x + pe.to(x.dtype)
+
+    def forward(self, x: Tensor) -> Tensor:  # (B, L, D) -> (B, L, D)
+        x = self._position(x, torch.arange(x.shape[1], device=x.device))
+        for block in self.blocks:
+            x = block(x)
+        return self.norm(x)
+
+    def init_state(self, batch: int, *, device: torch.device) -> State:
+        state: State = {}
+        for i, block in enumerate(self.blocks):
+            state |= block.attn.init_state(batch, device=device, prefix=f"layer{i}.")
+        return state
+
+    def step(self, x: Tensor, t: Tensor, state: State) -> tuple[Tensor, State]:
+        """x (B, D), t 0-d view index -> (B, D), new tower state."""
+        x = self._position(x, t.expand(x.shape[0]))
+        new: State = {}
+        for i, block in enumerate(self.blocks):
+            x, entries = block.step(x, state, prefix=f"layer{i}.")
+            new |= entries
+        return self.norm(x), new
+
+
+class LSTMTower(nn.Module):
+    """LSTM over frame embeddings (no positional encoding: the recurrence orders the views)."""
+
+    def __init__(self, config: ModelConfig) -> None:
+        super().__init__()
+        self.n_layers = config.n_layers
+        self.dim = config.embed_dim
+        self.lstm = nn.LSTM(config.embed_dim, config.embed_dim, config.n_layers, batch_first=True)
+
+    def forward(self, x: Tensor) -> Tensor:  # (B, L, D) -> (B, L, D)
+        return self.lstm(x)[0]
+
+    def init_state(self, batch: int, *, device: torch.device) -> State:
+        h = torch.zeros(self.n_layers, batch, self.dim, device=device)
+        return {"lstm.h": h, "lstm.c": h.clone()}
+
+    def step(self, x: Tensor, t: Tensor, state: State) -> tuple[Tensor, State]:
+        y, (h, c) = self.lstm(x.unsqueeze(1), (state["lstm.h"], state["lstm.c"]))
+        return y.squeeze(1), {"lstm.h": h, "lstm.c": c}
+
+
+# --------------------------------------------------------------------------------------------
+# The model
+# --------------------------------------------------------------------------------------------
+
+
+class CompletionModel(nn.Module):
+    """One of the four kinds (``config.kind``); build with :func:`build_model`.
+
+    ``forward(seq)`` (B, L, G, G, G) -> logits (B, L, G, G, G), causal.
+    ``init_state(batch)`` -> state; ``step(state, frame)`` with frame (B, G, G, G) ->
+    (logits (B, G, G, G), new state). Inputs may be float or bool occupancy.
+    """
+
+    def __init__(self, config: ModelConfig) -> None:
+        super().__init__()
+        self.config = config
+        generator = torch.Generator().manual_seed(config.seed)
+        self.encoder = Encoder(config)
+        self.decoder = Decoder(config)
+        self.context_encoder: Encoder | None = None
+        self.tower: AttentionTower | LSTMTower | None = None
+        if config.kind != "single_view":
+            self.context_encoder = Encoder(config)
+            if config.kind == "lstm":
+                self.tower = LSTMTower(config)
+            else:
+                mechanism = "performer" if config.kind == "mvp" else "exact"
+                self.tower = AttentionTower(config, mechanism=mechanism, generator=generator)
+
+    # ---- input checks --------------------------------------------------------------------
+
+    def _check_grids(self, x: Tensor, *, ndim: int, what: str) -> Tensor:
+        g = self.config.grid_size
+        if not isinstance(x, Tensor):
+            raise ValueError(f"{what} must be a torch.Tensor, got {type(x).__name__}")
+        if x.ndim != ndim or tuple(x.shape[-3:]) != (g, g, g):
+            expected = "(B, L, G, G, G)" if ndim == 5 else "(B, G, G, G)"
+            raise ValueError(f"{what} must be {expected} with G = {g}, got {tuple(x.shape)}")
+        if x.dtype == torch.bool or not x.is_floating_point():
+            x = x.to(self.encoder.dense.weight.dtype)
+        return x
+
+    # ---- parallel ------------------------------------------------------------------------
+
+    def forward(self, seq: Tensor) -> Tensor:
+        seq = self._check_grids(seq, ndim=5, what="seq")
+        b, n = seq.shape[:2]
+        frames = seq.flatten(0, 1)  # (N, G, G, G)
+        e = self.encoder(frames).view(b, n, -1)  # (B, L, D)
+        if self.tower is not None and self.context_encoder is not None:
+            context = self.context_encoder(frames).view(b, n, -1)  # (B, L, D)
+            e = e + self.tower(context)
+        logits = self.decoder(e.flatten(0, 1))  # (N, G, G, G)
+        return logits.view(seq.shape)
+
+    # ---- streaming -----------------------------------------------------------------------
+
+    def init_state(self, batch: int) -> State:
+        """State before any view: {"t": 0-d int64} plus the tower's memory."""
+        if batch < 1:
+            raise ValueError(f"batch must be >= 1, got {batch}")
+        device = self.encoder.dense.weight.device
+        state: State = {"t": torch.zeros((), dtype=torch.int64, device=device)}
+        if self.tower is not None:
+            state |= self.tower.init_state(batch, device=device)
+        return state
+
+    def step(self, state: State, frame: Tensor) -> tuple[Tensor, State]:
+        """Consume one view: frame (B, G, G, G) -> (logits (B, G, G, G), new state).
+
+        The given state is not modified, so it can be kept and stepped again.
+        """
+        frame = self._check_grids(frame, ndim=4, what="frame")
+        self._check_state(state, batch=frame.shape[0])
+        t = state["t"]
+        e = self.encoder(frame)  # (B, D)
+        new: State = {}
+        if self.tower is not None and self.context_encoder is not None:
+            context, new = self.tower.step(self.context_encoder(frame), t, state)
+            e = e + context
+        new["t"] = t + 1
+        return self.decoder(e), new
+
+    def _check_state(self, state: State, *, batch: int) -> None:
+        """Keys and shapes as from ``init_state(batch)``; a KV cache may differ along T."""
+        reference = self.init_state(batch)
+        if not isinstance(state, Mapping) or state.keys() != reference.keys():
+            got = sorted(state.keys()) if isinstance(state, Mapping) else type(state).__name__
+            raise ValueError(f"state must have keys {sorted(reference)}, got {got}")
+        for name, ref in reference.items():
+            shape, want = list(state[name].shape), list(ref.shape)
+            if name.endswith(KV_CACHE_SUFFIXES) and len(shape) == 4:
+                shape[2] = want[2] = 0  # (B, H, T, E): T grows with the views
+            if shape != want:
+                raise ValueError(
+                    f"state {name!r} has shape {tuple(state[name].shape)}, expected "
+                    f"{tuple(ref.shape)} for batch {batch} (was it made by this model?)"
+                )
+
+    def redraw_features(self, *, seed: int) -> None:
+        """Redraw every FAVOR+ projection from ``seed`` (training only; no-op without any)."""
+        generator = torch.Generator().manual_seed(seed)
+        for module in self.modules():
+            if isinstance(module, FeatureMap):
+                module.redraw(generator=generator)
+
+    def n_params(self) -> int:
+        """Trainable parameters (the FAVOR+ buffers are not counted)."""
+        return sum(p.numel() for p in self.parameters() if p.requires_grad)
+
+
+def build_model(config: ModelConfig) -> CompletionModel:
+    """A freshly initialised model; deterministic given ``config.seed``."""
+    with torch.random.fork_rng(devices=[]):
+        torch.manual_seed(config.seed)
+        return CompletionModel(config)
+
+
+# --------------------------------------------------------------------------------------------
+# State and checkpoint serialisation
+# --------------------------------------------------------------------------------------------
+
+
+def state_to_bytes(state: State) -> bytes:
+    """Serialise a streaming state exactly (torch.save of CPU tensors, compact storages)."""
+    if not isinstance(state, Mapping) or not all(isinstance(v, Tensor) for v in state.values()):
+        raise ValueError("state must be a dict[str, Tensor]")
+    buffer = io.BytesIO()
+    torch.save({k: v.detach().to("cpu").clone().contiguous() for k, v in state.items()}, buffer)
+    return buffer.getvalue()
+
+
+def state_from_bytes(data: bytes, *, device: torch.device | str = "cpu") -> State:
+    """Inverse of :func:`state_to_bytes` (``torch.load(weights_only=True)``)."""
+    state = torch.load(io.BytesIO(data), map_location=device, weights_only=True)
+    if not isinstance(state, dict) or not all(isinstance(v, Tensor) for v in state.values()):
+        raise ValueError("bytes do not hold a dict[str, Tensor] state")
+    return state
+
+
+def state_nbytes(state: State) -> int:
+    """Raw tensor payload of a state in bytes (without serialisation overhead)."""
+    return sum(v.numel() * v.element_size() for v in state.values())
+
+
+def _check_plain(value: Any, path: str) -> None:
+    """Raise unless ``value`` is loadable by ``torch.load(weights_only=True)`` as plain data."""
+    if value is None or isinstance(value, (bool, int, float, str, Tensor)):
+        return
+    if isinstance(value, (list, tuple)):
+        for i, item in enumerate(value):
+            _check_plain(item, f"{path}[{i}]")
+        return
+    if isinstance(value, dict):
+        for key, item in value.items():
+            if not isinstance(key, (str, int)):
+                raise ValueError(f"checkpoint key {path}[{key!r}] must be str or int")
+            _check_plain(item, f"{path}[{key!r}]")
+        return
+    raise ValueError(
+        f"checkpoint entry {path} is a {type(value).__name__}; only plain data "
+        "(dict, list, str, int, float, bool, None, Tensor) can be loaded with weights_only=True"
+    )
+
+
+def save_checkpoint(model: CompletionModel, path: str | os.PathLike[str], **extra: Any) -> None:
+    """Write ``{"format", "version", "config", "grid", "state_dict", **extra}`` to ``path``.
+
+    ``extra`` holds plain data only (e.g. epoch, metrics, threshold, optimizer state dict);
+    ``grid=...`` overrides :data:`GRID_CONVENTION`.
+    """
+    reserved = {"format", "version", "config", "state_dict"} & extra.keys()
+    if reserved:
+        raise ValueError(f"extra checkpoint entries may not be named {sorted(reserved)}")
+    payload: dict[str, Any] = {
+        "format": CHECKPOINT_FORMAT,
+        "version": CHECKPOINT_VERSION,
+        "config": model.config.to_dict(),
+        "grid": GRID_CONVENTION,
+        **extra,
+    }
+    _check_plain(payload, "checkpoint")
+    payload["state_dict"] = {k: v.detach().cpu() for k, v in model.state_dict().items()}
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.name + ".tmp")
+    torch.save(payload, tmp)
+    os.replace(tmp, path)
+
+
+def read_checkpoint(
+    path: str | os.PathLike[str], *, map_location: torch.device | str = "cpu"
+) -> dict[str, Any]:
+    """The raw checkpoint dict (config as a plain dict, state_dict, extras), validated."""
+    payload = torch.load(Path(path), map_location=map_location, weights_only=True)
+    if not isinstance(payload, dict) or payload.get("format") != CHECKPOINT_FORMAT:
+        raise ValueError(f"{path} is not a completion checkpoint (format {CHECKPOINT_FORMAT!r})")
+    if payload.get("version") != CHECKPOINT_VERSION:
+        raise ValueError(
+            f"{path} has checkpoint version {payload.get('version')}, expected {CHECKPOINT_VERSION}"
+        )
+    return payload
+
+
+def load_checkpoint(
+    path: str | os.PathLike[str], *, map_location: torch.device | str = "cpu"
+) -> CompletionModel:
+    """Rebuild the model stored at ``path`` (in eval mode); needs nothing but the file."""
+    payload = read_checkpoint(path, map_location=map_location)
+    model = CompletionModel(ModelConfig.from_dict(payload["config"]))
+    model.load_state_dict(payload["state_dict"])
+    return model.to(map_location).eval()
+
+
+def available_weights() -> list[str]:
+    """Names of the shipped weights in ``completion/weights/``."""
+    return sorted(p.stem for p in WEIGHTS_DIR.glob("*.pt"))
+
+
+def load_model(
+    name_or_path: str | os.PathLike[str], *, map_location: torch.device | str = "cpu"
+) -> CompletionModel:
+    """Load shipped weights by name (``"mvp"`` -> ``completion/weights/mvp.pt``) or a file path."""
+    text = os.fspath(name_or_path)
+    path = Path(text)
+    if not path.suffix and os.sep not in text and "/" not in text:
+        path = WEIGHTS_DIR / f"{text}.pt"
+        if not path.is_file():
+            raise FileNotFoundError(
+                f"no shipped weights named {text!r} in {WEIGHTS_DIR}; "
+                f"available: {available_weights() or 'none'}"
+            )
+    elif not path.is_file():
+        raise FileNotFoundError(f"checkpoint {path} does not exist")
+    return load_checkpoint(path, map_location=map_location)

@@ -1,0 +1,271 @@
+"""The paper's five experimental conditions as simulated 12-view sequences (DESIGN §4).
+
+``make_sequence(condition, split, index, seed)`` is deterministic in its arguments: it draws
+the objects, their poses and the camera path from one generator seeded by
+(seed, condition, split, index), renders each view, fits that view's grid to the observed points
+(:func:`completion.grid.fit_grid`) and voxelizes the observed points (input) and the complete
+objects (target, solid) in it.
+
+- camera_pan: one object at the origin in a random orientation; the camera circles it at a random
+  radius (0.45–0.75 m) and elevation (15–60°), 30° of azimuth per view.
+- two_object_pan: two objects side by side, scaled down if needed so that both fit in a 0.3 m
+  cube (0.027 m³); same pan; the target holds both.
+- object_hiding: camera_pan, then a 1-voxel-thick curtain at grid index i = p_t sweeps along the
+  grid's x axis (p_t = round(t·40/11), t = 0…11); input voxels with i ≤ p_t are removed. The
+  first view is complete (p_0 = 0 only covers the empty border column), the last one empty. The
+  grid is fitted to the uncovered observation: the curtain is a synthetic occluder in voxel
+  space, as in the paper.
+- object_reveal: the reverse sweep (p_t = round((11 − t)·40/11)): hidden at first, then revealed.
+- slide_behind: a fixed camera looks at a stationary object; a second, no larger object slides
+  across behind it (random depth gap and start offset), hidden in the middle views.
+"""
+
+from __future__ import annotations
+
+import zlib
+from dataclasses import dataclass, field
+
+import numpy as np
+import trimesh
+
+from completion import grid
+from completion.objects import SPLITS, load_object, object_ids
+from completion.render import DepthNoise, Renderer, look_at
+
+CONDITIONS: tuple[str, ...] = (
+    "camera_pan", "two_object_pan", "object_hiding", "object_reveal", "slide_behind",
+)
+#: Conditions with a single object (the ones the grasp joint error applies to).
+SINGLE_OBJECT_CONDITIONS: tuple[str, ...] = ("camera_pan", "object_hiding", "object_reveal")
+VIEWS = 12
+PAIR_CUBE_M = 0.3
+
+
+@dataclass
+class Sequence:
+    """One simulated sequence; arrays are per view (L = number of views)."""
+
+    inputs: np.ndarray  # (L, 40, 40, 40) bool, observed voxels
+    targets: np.ndarray  # (L, 40, 40, 40) bool, complete object(s), solid
+    grid_to_camera: np.ndarray  # (L, 4, 4) float64
+    camera_to_world: np.ndarray  # (L, 4, 4) float64
+    meta: dict = field(default_factory=dict)
+    depth: np.ndarray | None = None  # (L, H, W) float32 metres, 0 = no return
+    mask: np.ndarray | None = None  # (L, H, W) int16 object index, −1 = background
+
+    def __len__(self) -> int:
+        return len(self.inputs)
+
+
+def _rng(condition: str, split: str, index: int, seed: int) -> np.random.Generator:
+    key = zlib.crc32(f"{condition}/{split}".encode())
+    return np.random.default_rng([seed, key, index])
+
+
+def _random_rotation(rng: np.random.Generator) -> np.ndarray:
+    q = rng.normal(size=4)
+    q /= np.linalg.norm(q)
+    return trimesh.transformations.quaternion_matrix(q)
+
+
+def _placed(mesh: trimesh.Trimesh, pose: np.ndarray) -> trimesh.Trimesh:
+    out = mesh.copy()
+    out.apply_transform(pose)
+    return out
+
+
+def _pan_cameras(rng: np.random.Generator, centre: np.ndarray, views: int) -> list[np.ndarray]:
+    radius = rng.uniform(0.45, 0.75)
+    elevation = np.radians(rng.uniform(15, 60))
+    azimuth0 = rng.uniform(0, 2 * np.pi)
+    poses = []
+    for t in range(views):
+        az = azimuth0 + t * np.radians(30.0)
+        eye = centre + radius * np.array(
+            [np.cos(az) * np.cos(elevation), np.sin(az) * np.cos(elevation), np.sin(elevation)]
+        )
+        poses.append(look_at(eye, centre))
+    return poses
+
+
+def _pair(rng: np.random.Generator, a: trimesh.Trimesh, b: trimesh.Trimesh):
+    """Two objects side by side, both inside a 0.3 m cube centred at the origin.
+
+    Returns the (possibly scaled-down) meshes and their rigid poses.
+    """
+    ra, rb = _random_rotation(rng), _random_rotation(rng)
+    a_w, b_w = _placed(a, ra), _placed(b, rb)
+    angle = rng.uniform(0, 2 * np.pi)
+    u = np.array([np.cos(angle), np.sin(angle), 0.0])
+    # Push b along u until the two bounding boxes no longer overlap along u, plus a small gap.
+    ext_a = np.abs(a_w.vertices @ u).max()
+    ext_b = np.abs(b_w.vertices @ u).max()
+    gap = rng.uniform(0.0, 0.02)
+    pa, pb = ra.copy(), rb.copy()
+    pb[:3, 3] = u * (ext_a + ext_b + gap)
+    both = np.concatenate([a_w.vertices, b_w.vertices + pb[:3, 3]])
+    lo, hi = both.min(0), both.max(0)
+    scale = min(1.0, PAIR_CUBE_M / float((hi - lo).max()))
+    shift = -(lo + hi) / 2
+    poses = []
+    for p in (pa, pb):
+        q = p.copy()
+        q[:3, 3] = (p[:3, 3] + shift) * scale
+        poses.append(q)
+    return [a.copy().apply_scale(scale), b.copy().apply_scale(scale)], poses
+
+
+def _slide(rng: np.random.Generator, a: trimesh.Trimesh, b: trimesh.Trimesh, views: int):
+    """The (possibly shrunk) sliding mesh b, the camera pose and per-view poses of a and b."""
+    ra, rb = _random_rotation(rng), _random_rotation(rng)
+    size_a = float(np.linalg.norm(a.extents))
+    size_b = float(np.linalg.norm(b.extents))
+    shrink = min(1.0, size_a * rng.uniform(0.6, 1.0) / size_b)
+    b = b.copy().apply_scale(shrink)
+    radius_a, radius_b = size_a / 2, size_b * shrink / 2
+    azimuth = rng.uniform(0, 2 * np.pi)
+    elevation = np.radians(rng.uniform(5, 20))
+    dist = rng.uniform(0.5, 0.7)
+    forward = -np.array([np.cos(azimuth), np.sin(azimuth), 0.0])  # camera → object, horizontal
+    eye = -forward * dist * np.cos(elevation) + np.array([0, 0, dist * np.sin(elevation)])
+    camera = look_at(eye, np.zeros(3))
+    side = np.cross(forward, [0.0, 0.0, 1.0])
+    depth_gap = radius_a + radius_b + rng.uniform(0.02, 0.10)
+    span = (radius_a + radius_b) * rng.uniform(1.3, 1.8)
+    start = rng.choice([-1.0, 1.0]) * span
+    offset = rng.uniform(-0.25, 0.25) * radius_a
+    poses = []
+    for x in np.linspace(start, -start, views):
+        pb = rb.copy()
+        pb[:3, 3] = forward * depth_gap + side * (x + offset)
+        poses.append([ra, pb])
+    return b, camera, poses
+
+
+def curtain_position(t: int, views: int, *, reveal: bool) -> int:
+    """Grid index of the curtain at view t; voxels with i ≤ position are covered."""
+    step = t if not reveal else views - 1 - t
+    return int(round(step * grid.GRID_SIZE / (views - 1)))
+
+
+def make_sequence(
+    condition: str,
+    split: str,
+    index: int,
+    seed: int = 0,
+    *,
+    views: int = VIEWS,
+    pool: list[str] | None = None,
+    noise: DepthNoise | None = None,
+    keep_depth: bool = False,
+    renderer: Renderer | None = None,
+) -> Sequence:
+    """Render and voxelize one sequence of ``condition``; deterministic in its arguments.
+
+    pool : object ids to draw from (default: every procedural and random_urdf object of
+        ``split``). ``renderer`` may be passed to reuse one pybullet client across calls.
+    """
+    if condition not in CONDITIONS:
+        raise ValueError(f"condition must be one of {CONDITIONS}, got {condition!r}")
+    if split not in SPLITS:
+        raise ValueError(f"split must be one of {SPLITS}, got {split!r}")
+    if views < 2:
+        raise ValueError(f"a sequence needs at least 2 views, got {views}")
+    rng = _rng(condition, split, index, seed)
+    ids = pool if pool is not None else object_ids(split)
+    if not ids:
+        raise ValueError("the object pool is empty")
+    n_objects = 2 if condition in ("two_object_pan", "slide_behind") else 1
+    chosen = [str(ids[i]) for i in rng.choice(len(ids), size=n_objects, replace=len(ids) < 2)]
+    meshes = [load_object(i) for i in chosen]
+
+    if condition == "two_object_pan":
+        meshes, poses = _pair(rng, *meshes)
+        object_poses = [poses] * views
+        cameras = _pan_cameras(rng, np.zeros(3), views)
+    elif condition == "slide_behind":
+        sliding, camera, object_poses = _slide(rng, *meshes, views)
+        meshes = [meshes[0], sliding]
+        cameras = [camera] * views
+    else:
+        object_poses = [[_random_rotation(rng)]] * views
+        cameras = _pan_cameras(rng, np.zeros(3), views)
+
+    own = renderer is None
+    r = Renderer() if own else renderer
+    try:
+        r.clear()
+        for mesh in meshes:
+            r.add_mesh(mesh)
+        seq = _observe(r, condition, meshes, object_poses, cameras, rng, noise, keep_depth)
+    finally:
+        if own:
+            r.close()
+        else:
+            r.clear()
+    seq.meta.update(
+        condition=condition, split=split, index=index, seed=seed, views=views,
+        object_ids=chosen, intrinsics=r.intrinsics.as_dict(),
+        object_to_world=[[p.tolist() for p in ps] for ps in object_poses],
+    )
+    return seq
+
+
+def _observe(
+    r: Renderer,
+    condition: str,
+    meshes: list[trimesh.Trimesh],
+    object_poses: list[list[np.ndarray]],
+    cameras: list[np.ndarray],
+    rng: np.random.Generator,
+    noise: DepthNoise | None,
+    keep_depth: bool,
+) -> Sequence:
+    views = len(cameras)
+    inputs = np.zeros((views, *grid.GRID_SHAPE), dtype=bool)
+    targets = np.zeros_like(inputs)
+    transforms = np.zeros((views, 4, 4))
+    depths, masks, visible, curtains = [], [], [], []
+    previous = None
+    for t, (camera, poses) in enumerate(zip(cameras, object_poses, strict=True)):
+        for i, pose in enumerate(poses):
+            r.set_pose(i, pose)
+        depth, mask = r.render(camera)
+        if noise is not None:
+            depth = noise.apply(depth, rng)
+        points = grid.depth_to_points(depth, r.intrinsics, mask >= 0)
+        labels = mask[(mask >= 0) & (depth > 0)]
+        visible.append([int((labels == i).sum()) for i in range(len(meshes))])
+        if len(points):
+            previous = grid.fit_grid(points)
+        elif previous is None:  # nothing seen yet: frame the objects where they are
+            previous = grid.fit_grid(_camera_vertices(meshes, poses, camera))
+        transforms[t] = previous
+        occ = grid.voxelize_points(points, previous)
+        if condition in ("object_hiding", "object_reveal"):
+            c = curtain_position(t, views, reveal=condition == "object_reveal")
+            occ[: c + 1] = False
+            curtains.append(c)
+        inputs[t] = occ
+        for mesh, pose in zip(meshes, poses, strict=True):
+            v = grid.transform_points(mesh.vertices, np.linalg.inv(camera) @ pose)
+            targets[t] |= grid.voxelize_mesh(v, mesh.faces, previous)
+        if keep_depth:
+            depths.append(depth)
+            masks.append(mask)
+    meta = {"visible_points": visible}
+    if curtains:
+        meta["curtain"] = curtains
+    return Sequence(
+        inputs=inputs, targets=targets, grid_to_camera=transforms,
+        camera_to_world=np.stack(cameras), meta=meta,
+        depth=np.stack(depths) if keep_depth else None,
+        mask=np.stack(masks) if keep_depth else None,
+    )
+
+
+def _camera_vertices(meshes, poses, camera) -> np.ndarray:
+    inv = np.linalg.inv(camera)
+    return np.concatenate(
+        [grid.transform_points(m.vertices, inv @ p) for m, p in zip(meshes, poses, strict=True)]
+    )
