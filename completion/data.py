@@ -22,6 +22,7 @@ import argparse
 import json
 import sys
 import time
+import zipfile
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
@@ -54,21 +55,29 @@ def load_sequence(path: str | Path) -> Sequence:
     path = Path(path)
     try:
         with np.load(path, allow_pickle=False) as z:
-            missing = [k for k in (*SHARD_KEYS, "meta") if k not in z]
-            if missing:
-                raise ValueError(f"{path} is not a sequence shard: missing {missing}")
             arrays = {k: z[k] for k in z.files}
-    except (OSError, EOFError) as exc:
+    except (OSError, EOFError, ValueError, zipfile.BadZipFile) as exc:
         raise ValueError(f"cannot read shard {path}: {exc}") from exc
+    missing = [k for k in (*SHARD_KEYS, "meta") if k not in arrays]
+    if missing:
+        raise ValueError(f"{path} is not a sequence shard: missing {missing}")
     n = len(arrays["inputs"])
-    for k, shape in (("inputs", (40, 40, 40)), ("targets", (40, 40, 40)),
-                     ("grid_to_camera", (4, 4)), ("camera_to_world", (4, 4))):
+    for k, shape in (
+        ("inputs", (40, 40, 40)),
+        ("targets", (40, 40, 40)),
+        ("grid_to_camera", (4, 4)),
+        ("camera_to_world", (4, 4)),
+    ):
         if arrays[k].shape != (n, *shape):
             raise ValueError(f"{path}: {k} has shape {arrays[k].shape}, expected {(n, *shape)}")
     return Sequence(
-        inputs=arrays["inputs"].astype(bool), targets=arrays["targets"].astype(bool),
-        grid_to_camera=arrays["grid_to_camera"], camera_to_world=arrays["camera_to_world"],
-        meta=json.loads(str(arrays["meta"])), depth=arrays.get("depth"), mask=arrays.get("mask"),
+        inputs=arrays["inputs"].astype(bool),
+        targets=arrays["targets"].astype(bool),
+        grid_to_camera=arrays["grid_to_camera"],
+        camera_to_world=arrays["camera_to_world"],
+        meta=json.loads(str(arrays["meta"])),
+        depth=arrays.get("depth"),
+        mask=arrays.get("mask"),
     )
 
 
@@ -84,8 +93,14 @@ def _generate_one(job: tuple) -> str:
     if _WORKER_RENDERER is None:
         _WORKER_RENDERER = Renderer()
     seq = make_sequence(
-        condition, split, index, seed, views=views, renderer=_WORKER_RENDERER,
-        noise=DepthNoise() if noise else None, keep_depth=keep_depth,
+        condition,
+        split,
+        index,
+        seed,
+        views=views,
+        renderer=_WORKER_RENDERER,
+        noise=DepthNoise() if noise else None,
+        keep_depth=keep_depth,
     )
     return str(save_sequence(seq, Path(out) / shard_name(condition, split, seed, index)))
 
@@ -180,12 +195,19 @@ def _positive(text: str) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m completion.data", description=__doc__,
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argparse.ArgumentParser(
+        prog="python -m completion.data",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
     sub = parser.add_subparsers(dest="command", required=True)
     g = sub.add_parser("generate", help="render sequences and write shards")
-    g.add_argument("--condition", type=_parse_conditions, default=list(CONDITIONS),
-                   help="a condition, a comma list, or 'all' (default all)")
+    g.add_argument(
+        "--condition",
+        type=_parse_conditions,
+        default=list(CONDITIONS),
+        help="a condition, a comma list, or 'all' (default all)",
+    )
     g.add_argument("--split", choices=("train", "val", "test"), required=True)
     g.add_argument("--count", type=_positive, required=True, help="sequences per condition")
     g.add_argument("--seed", type=int, default=0)
@@ -200,9 +222,17 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     if args.command == "generate":
         tic = time.perf_counter()
-        paths = generate(args.condition, args.split, args.count, seed=args.seed, out=args.out,
-                         workers=args.workers, views=args.views, noise=args.noise,
-                         keep_depth=args.keep_depth)
+        paths = generate(
+            args.condition,
+            args.split,
+            args.count,
+            seed=args.seed,
+            out=args.out,
+            workers=args.workers,
+            views=args.views,
+            noise=args.noise,
+            keep_depth=args.keep_depth,
+        )
         dt = time.perf_counter() - tic
         size = sum(p.stat().st_size for p in paths) / max(len(paths), 1)
         print(f"{len(paths)} sequences in {args.out} ({dt:.1f} s, mean shard {size / 1e3:.0f} kB)")

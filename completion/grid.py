@@ -53,12 +53,19 @@ class Intrinsics:
     def from_fov(cls, width: int, height: int, vertical_fov_deg: float) -> Intrinsics:
         """Square pixels, principal point at the image centre."""
         f = 0.5 * height / np.tan(np.radians(vertical_fov_deg) / 2.0)
-        return cls(fx=f, fy=f, cx=(width - 1) / 2.0, cy=(height - 1) / 2.0,
-                   width=width, height=height)
+        return cls(
+            fx=f, fy=f, cx=(width - 1) / 2.0, cy=(height - 1) / 2.0, width=width, height=height
+        )
 
     def as_dict(self) -> dict:
-        return {"fx": self.fx, "fy": self.fy, "cx": self.cx, "cy": self.cy,
-                "width": self.width, "height": self.height}
+        return {
+            "fx": self.fx,
+            "fy": self.fy,
+            "cx": self.cx,
+            "cy": self.cy,
+            "width": self.width,
+            "height": self.height,
+        }
 
 
 #: Default camera: 320×240 with a RealSense-D415-like 42.5° vertical field of view.
@@ -289,6 +296,6 @@ class VoxelGrid:
         n = GRID_SIZE**3
         if len(data) != n // 8:
             raise ValueError(f"packed grid must be {n // 8} bytes, got {len(data)}")
-        return np.unpackbits(np.frombuffer(data, dtype=np.uint8))[:n].astype(bool).reshape(
-            GRID_SHAPE
+        return (
+            np.unpackbits(np.frombuffer(data, dtype=np.uint8))[:n].astype(bool).reshape(GRID_SHAPE)
         )

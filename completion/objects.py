@@ -29,8 +29,18 @@ Split = Literal["train", "val", "test"]
 SPLITS: tuple[str, ...] = ("train", "val", "test")
 SIZE_RANGE_M = (0.04, 0.25)
 FAMILIES: tuple[str, ...] = (
-    "box", "cylinder", "ellipsoid", "capsule", "cone", "torus", "superquadric",
-    "mug", "bottle", "hammer", "l_shape", "t_shape",
+    "box",
+    "cylinder",
+    "ellipsoid",
+    "capsule",
+    "cone",
+    "torus",
+    "superquadric",
+    "mug",
+    "bottle",
+    "hammer",
+    "l_shape",
+    "t_shape",
 )
 #: Procedural ids per family (k = 0 … N-1); the split takes k % 10.
 PROCEDURAL_PER_FAMILY = 1000
@@ -92,15 +102,19 @@ def objects_in_folder(folder: str | Path) -> list[str]:
     """Ids (``file:<path>``) of every OBJ/STL/PLY mesh in a folder, sorted."""
     root = Path(folder)
     if not root.is_dir():
-        raise ValueError(f"--objects must be a folder of OBJ/STL/PLY meshes; {root} is not a folder")
-    ids = [f"file:{p.resolve()}" for p in sorted(root.iterdir()) if p.suffix.lower() in MESH_SUFFIXES]
+        raise ValueError(
+            f"--objects must be a folder of OBJ/STL/PLY meshes; {root} is not a folder"
+        )
+    ids = [
+        f"file:{p.resolve()}" for p in sorted(root.iterdir()) if p.suffix.lower() in MESH_SUFFIXES
+    ]
     if not ids:
         raise ValueError(f"no OBJ/STL/PLY meshes found in {root}")
     return ids
 
 
 def load_object(object_id: str) -> trimesh.Trimesh:
-    """The mesh of an object id: metres, centred on its bounding-box centre. Cached; copy to edit."""
+    """The mesh of an object id: metres, centred on its bounding-box centre (a fresh copy)."""
     return _load_cached(object_id).copy()
 
 
@@ -124,7 +138,9 @@ def _load_cached(object_id: str) -> trimesh.Trimesh:
             target = rng.uniform(*SIZE_RANGE_M)
         elif kind == "named":
             if rest not in NAMED_OBJECTS:
-                raise ValueError(f"unknown named object {rest!r}; expected one of {list(NAMED_OBJECTS)}")
+                raise ValueError(
+                    f"unknown named object {rest!r}; expected one of {list(NAMED_OBJECTS)}"
+                )
             mesh = _read_mesh(_pybullet_data() / NAMED_OBJECTS[rest])
             target = rng.uniform(0.08, 0.20)
         else:
@@ -197,8 +213,9 @@ def _mug(rng: np.random.Generator) -> trimesh.Trimesh:
     cup = trimesh.creation.annulus(r_min=r - wall, r_max=r, height=h, sections=40)
     bottom = trimesh.creation.cylinder(radius=r, height=wall, sections=40)
     bottom.apply_translation([0, 0, -h / 2 + wall / 2])
-    handle = trimesh.creation.torus(major_radius=h * 0.28, minor_radius=wall * 0.6,
-                                    major_sections=24, minor_sections=10)
+    handle = trimesh.creation.torus(
+        major_radius=h * 0.28, minor_radius=wall * 0.6, major_sections=24, minor_sections=10
+    )
     handle.apply_transform(trimesh.transformations.rotation_matrix(np.pi / 2, [1, 0, 0]))
     handle.apply_translation([r + h * 0.12, 0, 0])
     return trimesh.util.concatenate([cup, bottom, handle])
@@ -244,8 +261,17 @@ def _t_shape(rng: np.random.Generator) -> trimesh.Trimesh:
 
 
 _PROCEDURAL = {
-    "box": _box, "cylinder": _cylinder, "ellipsoid": _ellipsoid, "capsule": _capsule,
-    "cone": _cone, "torus": _torus, "superquadric": _superquadric, "mug": _mug,
-    "bottle": _bottle, "hammer": _hammer, "l_shape": _l_shape, "t_shape": _t_shape,
+    "box": _box,
+    "cylinder": _cylinder,
+    "ellipsoid": _ellipsoid,
+    "capsule": _capsule,
+    "cone": _cone,
+    "torus": _torus,
+    "superquadric": _superquadric,
+    "mug": _mug,
+    "bottle": _bottle,
+    "hammer": _hammer,
+    "l_shape": _l_shape,
+    "t_shape": _t_shape,
 }
 assert set(_PROCEDURAL) == set(FAMILIES)

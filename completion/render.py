@@ -59,7 +59,9 @@ def look_at(eye: np.ndarray, target: np.ndarray, up: np.ndarray = (0.0, 0.0, 1.0
     return pose
 
 
-def projection_matrix(intrinsics: Intrinsics, near: float = NEAR_M, far: float = FAR_M) -> np.ndarray:
+def projection_matrix(
+    intrinsics: Intrinsics, near: float = NEAR_M, far: float = FAR_M
+) -> np.ndarray:
     """The OpenGL projection that images exactly as the pinhole ``intrinsics`` (row 0 = top)."""
     w, h = intrinsics.width, intrinsics.height
     p = np.zeros((4, 4))
@@ -127,7 +129,10 @@ class Renderer:
         view = (_CV_TO_GL @ np.linalg.inv(camera_to_world)).T.reshape(-1).tolist()
         w, h = self.intrinsics.width, self.intrinsics.height
         _, _, _, zbuf, seg = self.client.getCameraImage(
-            w, h, viewMatrix=view, projectionMatrix=self._projection,
+            w,
+            h,
+            viewMatrix=view,
+            projectionMatrix=self._projection,
             renderer=self._pb.ER_TINY_RENDERER,
         )
         zbuf = np.asarray(zbuf, dtype=np.float64).reshape(h, w)

@@ -33,7 +33,11 @@ from completion.objects import SPLITS, load_object, object_ids
 from completion.render import DepthNoise, Renderer, look_at
 
 CONDITIONS: tuple[str, ...] = (
-    "camera_pan", "two_object_pan", "object_hiding", "object_reveal", "slide_behind",
+    "camera_pan",
+    "two_object_pan",
+    "object_hiding",
+    "object_reveal",
+    "slide_behind",
 )
 #: Conditions with a single object (the ones the grasp joint error applies to).
 SINGLE_OBJECT_CONDITIONS: tuple[str, ...] = ("camera_pan", "object_hiding", "object_reveal")
@@ -120,20 +124,26 @@ def _slide(rng: np.random.Generator, a: trimesh.Trimesh, b: trimesh.Trimesh, vie
     ra, rb = _random_rotation(rng), _random_rotation(rng)
     size_a = float(np.linalg.norm(a.extents))
     size_b = float(np.linalg.norm(b.extents))
-    shrink = min(1.0, size_a * rng.uniform(0.6, 1.0) / size_b)
+    shrink = min(1.0, size_a * rng.uniform(0.5, 0.9) / size_b)
     b = b.copy().apply_scale(shrink)
     radius_a, radius_b = size_a / 2, size_b * shrink / 2
     azimuth = rng.uniform(0, 2 * np.pi)
     elevation = np.radians(rng.uniform(5, 20))
     dist = rng.uniform(0.5, 0.7)
-    forward = -np.array([np.cos(azimuth), np.sin(azimuth), 0.0])  # camera → object, horizontal
-    eye = -forward * dist * np.cos(elevation) + np.array([0, 0, dist * np.sin(elevation)])
+    eye = dist * np.array(
+        [
+            np.cos(azimuth) * np.cos(elevation),
+            np.sin(azimuth) * np.cos(elevation),
+            np.sin(elevation),
+        ]
+    )
     camera = look_at(eye, np.zeros(3))
-    side = np.cross(forward, [0.0, 0.0, 1.0])
+    forward = -eye / dist  # along the viewing ray through the front object's centre
+    side = camera[:3, 0]  # the image's x axis
     depth_gap = radius_a + radius_b + rng.uniform(0.02, 0.10)
     span = (radius_a + radius_b) * rng.uniform(1.3, 1.8)
     start = rng.choice([-1.0, 1.0]) * span
-    offset = rng.uniform(-0.25, 0.25) * radius_a
+    offset = rng.uniform(-0.1, 0.1) * radius_a
     poses = []
     for x in np.linspace(start, -start, views):
         pb = rb.copy()
@@ -204,8 +214,13 @@ def make_sequence(
         else:
             r.clear()
     seq.meta.update(
-        condition=condition, split=split, index=index, seed=seed, views=views,
-        object_ids=chosen, intrinsics=r.intrinsics.as_dict(),
+        condition=condition,
+        split=split,
+        index=index,
+        seed=seed,
+        views=views,
+        object_ids=chosen,
+        intrinsics=r.intrinsics.as_dict(),
         object_to_world=[[p.tolist() for p in ps] for ps in object_poses],
     )
     return seq
@@ -257,8 +272,11 @@ def _observe(
     if curtains:
         meta["curtain"] = curtains
     return Sequence(
-        inputs=inputs, targets=targets, grid_to_camera=transforms,
-        camera_to_world=np.stack(cameras), meta=meta,
+        inputs=inputs,
+        targets=targets,
+        grid_to_camera=transforms,
+        camera_to_world=np.stack(cameras),
+        meta=meta,
         depth=np.stack(depths) if keep_depth else None,
         mask=np.stack(masks) if keep_depth else None,
     )

@@ -1,0 +1,178 @@
+"""Per-view streaming latency and carried-state size against the number of views seen.
+
+``python -m completion.bench`` prints JSON::
+
+    {"models": {"<name>": {"latency_ms": {"1": ..., "10": ..., "100": ..., "1000": ...},
+                           "state_bytes": {"1": ..., ...}, "params": ..., "weights": ...}},
+     "device": "cpu", "threads": 1, ...}
+
+``latency_ms[L]`` is the median wall time of one ``model.step`` (batch 1, CPU, inference mode)
+taken from the state after L earlier views; ``state_bytes[L]`` is the length of
+``state_to_bytes(state)`` after L views, i.e. what a service stores per session. Between
+checkpoints the stream is advanced without decoding (``model.advance``), and only ``--repeats``
+steps are timed at each checkpoint (each from the same state), so 1000 views take seconds.
+Shipped weights from ``completion/weights/<name>.pt`` are used when present
+(``"weights": "shipped"``), otherwise a freshly initialised model of the default config
+(``"weights": "fresh"``); latency and state size do not depend on the weights' values.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import statistics
+import time
+from collections.abc import Sequence
+from typing import Any, Literal
+
+import torch
+
+from completion.model import (
+    DEFAULT_CONFIGS,
+    WEIGHTS_DIR,
+    CompletionModel,
+    build_model,
+    default_config,
+    load_model,
+    state_nbytes,
+    state_to_bytes,
+)
+
+DEFAULT_MODELS = ("mvp", "mvt", "lstm", "single_view")
+DEFAULT_VIEWS = (1, 10, 100, 1000)
+WARMUP_STEPS = 2
+INPUT_OCCUPANCY = 0.02
+"""Fraction of occupied input voxels in the synthetic frames (timing does not depend on it)."""
+
+
+def resolve_model(name: str) -> tuple[CompletionModel, Literal["shipped", "fresh"]]:
+    """Shipped weights for ``name`` if present, else a fresh model of its default config."""
+    if (WEIGHTS_DIR / f"{name}.pt").is_file():
+        return load_model(name), "shipped"
+    return build_model(default_config(name)), "fresh"
+
+
+def bench_model(
+    model: CompletionModel, *, views: Sequence[int], repeats: int = 5, seed: int = 0
+) -> dict[str, Any]:
+    """Time one streaming step after each L in ``views`` and record the state size.
+
+    Returns {"latency_ms": {str(L): float}, "state_bytes": {str(L): int},
+    "state_tensor_bytes": {str(L): int}, "params": int}.
+    """
+    if repeats < 1:
+        raise ValueError(f"repeats must be >= 1, got {repeats}")
+    checkpoints = sorted(set(views))
+    if not checkpoints or checkpoints[0] < 0:
+        raise ValueError(f"views must be non-negative view counts, got {list(views)}")
+    g = model.config.grid_size
+    generator = torch.Generator().manual_seed(seed)
+    device = next(model.parameters()).device
+    frames = (torch.rand(4, 1, g, g, g, generator=generator) < INPUT_OCCUPANCY).float().to(device)
+    model.eval()
+    latency: dict[str, float] = {}
+    sizes: dict[str, int] = {}
+    tensor_sizes: dict[str, int] = {}
+    with torch.inference_mode():
+        state = model.init_state(1)
+        for i in range(WARMUP_STEPS):
+            model.step(state, frames[i % len(frames)])
+        seen = 0
+        for count in checkpoints:
+            while seen < count:
+                state = model.advance(state, frames[seen % len(frames)])
+                seen += 1
+            times = []
+            for r in range(repeats):
+                frame = frames[(seen + r) % len(frames)]
+                start = time.perf_counter()
+                model.step(state, frame)
+                times.append(time.perf_counter() - start)
+            latency[str(count)] = round(1000.0 * statistics.median(times), 3)
+            sizes[str(count)] = len(state_to_bytes(state))
+            tensor_sizes[str(count)] = state_nbytes(state)
+    return {
+        "latency_ms": latency,
+        "state_bytes": sizes,
+        "state_tensor_bytes": tensor_sizes,
+        "params": model.n_params(),
+    }
+
+
+def run_bench(
+    models: Sequence[str] = DEFAULT_MODELS,
+    *,
+    views: Sequence[int] = DEFAULT_VIEWS,
+    repeats: int = 5,
+    threads: int = 1,
+) -> dict[str, Any]:
+    """Benchmark the named models (shipped weights or default configs) on the CPU."""
+    unknown = [name for name in models if name not in DEFAULT_CONFIGS]
+    if unknown:
+        raise ValueError(f"unknown models {unknown}; expected names from {sorted(DEFAULT_CONFIGS)}")
+    if threads < 1:
+        raise ValueError(f"threads must be >= 1, got {threads}")
+    previous = torch.get_num_threads()
+    torch.set_num_threads(threads)
+    try:
+        results: dict[str, Any] = {}
+        for name in models:
+            model, source = resolve_model(name)
+            entry = bench_model(model, views=views, repeats=repeats)
+            results[name] = {"kind": model.config.kind, "weights": source, **entry}
+    finally:
+        torch.set_num_threads(previous)
+    return {
+        "models": results,
+        "device": "cpu",
+        "threads": threads,
+        "batch": 1,
+        "repeats": repeats,
+        "torch": torch.__version__,
+    }
+
+
+def _int_list(text: str) -> list[int]:
+    try:
+        return [int(part) for part in text.split(",") if part.strip()]
+    except ValueError as error:
+        raise argparse.ArgumentTypeError(
+            f"expected comma-separated integers, got {text!r}"
+        ) from error
+
+
+def _name_list(text: str) -> list[str]:
+    return [part.strip() for part in text.split(",") if part.strip()]
+
+
+def main(argv: Sequence[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(
+        prog="python -m completion.bench",
+        description="Streaming latency and state size per view count (JSON on stdout).",
+    )
+    parser.add_argument(
+        "--models",
+        type=_name_list,
+        default=list(DEFAULT_MODELS),
+        help=f"comma-separated names from {sorted(DEFAULT_CONFIGS)} (default: %(default)s)",
+    )
+    parser.add_argument(
+        "--views",
+        type=_int_list,
+        default=list(DEFAULT_VIEWS),
+        help="comma-separated view counts L (default: 1,10,100,1000)",
+    )
+    parser.add_argument("--repeats", type=int, default=5, help="timed steps per L (median)")
+    parser.add_argument("--threads", type=int, default=1, help="torch CPU threads")
+    args = parser.parse_args(argv)
+    try:
+        report = run_bench(
+            args.models, views=args.views, repeats=args.repeats, threads=args.threads
+        )
+    except ValueError as error:
+        parser.error(str(error))
+    print(json.dumps(report, indent=2))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,163 @@
+"""``CompletionStream``: feed views one at a time into a loaded model, get the completion.
+
+Each view, given as a depth image + intrinsics (+ mask), a camera-frame point cloud or a ready
+grid, is voxelized in its own grid exactly as training did (DESIGN §3: the Varley fit on the
+view's points; a view with no object points keeps the previous view's grid), the model takes one
+streaming step, and the completion is the model's output for the latest view: occupancy
+probabilities (40, 40, 40) with the grid's ``grid_to_camera`` (the latest view's camera frame).
+
+The whole stream state (model memory, current grid, latest logits, counters) serialises to bytes
+and back exactly, so a service can persist a session after every view.
+"""
+
+from __future__ import annotations
+
+import io
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from completion import grid as G
+
+DEFAULT_THRESHOLD = 0.5
+
+
+class NoObjectError(ValueError):
+    """Raised when a completion is asked for before any view showed object points."""
+
+
+@dataclass(frozen=True)
+class ViewResult:
+    view_index: int  # 0-based index of this view in the stream
+    observed_voxels: int  # occupied voxels of this view's input grid
+    occupied_voxels: int  # voxels of the completion above the threshold
+
+
+@dataclass(frozen=True)
+class Completion:
+    probabilities: np.ndarray  # (40, 40, 40) float32 in [0, 1]
+    grid_to_camera: np.ndarray  # (4, 4) float64, latest view's camera frame
+    threshold: float
+    views: int
+
+    @property
+    def occupancy(self) -> np.ndarray:
+        """(40, 40, 40) bool at the decision threshold."""
+        return self.probabilities >= self.threshold
+
+    def voxel_grid(self) -> G.VoxelGrid:
+        return G.VoxelGrid(self.occupancy, self.grid_to_camera)
+
+
+class CompletionStream:
+    """Streaming completion with one loaded model (not thread-safe: one stream per session)."""
+
+    def __init__(self, model: torch.nn.Module, *, threshold: float | None = None) -> None:
+        self.model = model.eval()
+        self.threshold = float(
+            threshold if threshold is not None else getattr(model, "threshold", DEFAULT_THRESHOLD)
+        )
+        self.views = 0
+        self.grid_to_camera: np.ndarray | None = None
+        self.camera_to_world: np.ndarray | None = None
+        self._state = model.init_state(1)
+        self._logits: np.ndarray | None = None
+
+    # ------------------------------------------------------------------ input
+    def add_view(
+        self,
+        *,
+        depth: np.ndarray | None = None,
+        intrinsics: G.Intrinsics | None = None,
+        mask: np.ndarray | None = None,
+        points: np.ndarray | None = None,
+        grid: G.VoxelGrid | None = None,
+        camera_to_world: np.ndarray | None = None,
+    ) -> ViewResult:
+        """Add one view given as exactly one of depth (+ intrinsics, mask), points or grid."""
+        given = [x is not None for x in (depth, points, grid)]
+        if sum(given) != 1:
+            raise ValueError("give exactly one of depth (with intrinsics), points or grid")
+        if depth is not None:
+            if intrinsics is None:
+                raise ValueError("a depth image needs its intrinsics")
+            points = G.depth_to_points(depth, intrinsics, mask)
+        if grid is None:
+            pts = G._as_points(points)
+            if len(pts):
+                transform = G.fit_grid(pts)
+            else:
+                transform = self.grid_to_camera
+            occ = (
+                G.voxelize_points(pts, transform)
+                if transform is not None
+                else np.zeros(G.GRID_SHAPE, dtype=bool)
+            )
+        else:
+            transform, occ = grid.grid_to_camera, grid.occupancy
+        if camera_to_world is not None:
+            pose = np.asarray(camera_to_world, dtype=np.float64)
+            if pose.shape != (4, 4) or not np.isfinite(pose).all():
+                raise ValueError("camera_to_world must be a finite 4×4 matrix")
+        return self._step(occ, transform, camera_to_world)
+
+    def _step(self, occ: np.ndarray, transform, camera_to_world) -> ViewResult:
+        frame = torch.from_numpy(np.ascontiguousarray(occ, dtype=np.float32))[None]
+        with torch.no_grad():
+            logits, self._state = self.model.step(self._state, frame)
+        self._logits = logits[0].float().numpy()
+        index = self.views
+        self.views += 1
+        self.grid_to_camera = transform
+        self.camera_to_world = (
+            None if camera_to_world is None else np.asarray(camera_to_world, dtype=np.float64)
+        )
+        occupied = int((self._logits >= _logit(self.threshold)).sum())
+        return ViewResult(index, int(occ.sum()), occupied)
+
+    # ------------------------------------------------------------------ output
+    def completion(self) -> Completion:
+        """The latest view's completion; raises NoObjectError before any object points."""
+        if self._logits is None or self.grid_to_camera is None:
+            raise NoObjectError("no view with object points has been added yet")
+        probs = (1.0 / (1.0 + np.exp(-self._logits.astype(np.float64)))).astype(np.float32)
+        return Completion(probs, self.grid_to_camera.copy(), self.threshold, self.views)
+
+    # ------------------------------------------------------------------ persistence
+    def to_bytes(self) -> bytes:
+        """The whole stream state; :meth:`from_bytes` restores it exactly."""
+        from completion.model import state_to_bytes
+
+        buf = io.BytesIO()
+        arrays = {
+            "model_state": np.frombuffer(state_to_bytes(self._state), dtype=np.uint8),
+            "views": np.array(self.views),
+            "threshold": np.array(self.threshold),
+        }
+        if self.grid_to_camera is not None:
+            arrays["grid_to_camera"] = self.grid_to_camera
+        if self.camera_to_world is not None:
+            arrays["camera_to_world"] = self.camera_to_world
+        if self._logits is not None:
+            arrays["logits"] = self._logits
+        np.savez(buf, **arrays)
+        return buf.getvalue()
+
+    @classmethod
+    def from_bytes(cls, model: torch.nn.Module, data: bytes) -> CompletionStream:
+        from completion.model import state_from_bytes
+
+        with np.load(io.BytesIO(data), allow_pickle=False) as z:
+            stream = cls(model, threshold=float(z["threshold"]))
+            stream._state = state_from_bytes(z["model_state"].tobytes())
+            stream.views = int(z["views"])
+            stream.grid_to_camera = z["grid_to_camera"] if "grid_to_camera" in z else None
+            stream.camera_to_world = z["camera_to_world"] if "camera_to_world" in z else None
+            stream._logits = z["logits"] if "logits" in z else None
+        return stream
+
+
+def _logit(p: float) -> float:
+    p = min(max(p, 1e-7), 1 - 1e-7)
+    return float(np.log(p / (1 - p)))

@@ -1,0 +1,442 @@
+"""GraspIt!-style autograsp of the BarrettHand on a triangle mesh (kinematic, deterministic).
+
+Semantics (BARRETT.md, DESIGN.md §7):
+
+1. The spread is set first and never moved.
+2. Approach (optional): while the open hand overlaps the object, back off along the palm's −z in
+   ``approach_step`` steps; then translate along +z in ``approach_step`` steps until the hand
+   touches the object, bisecting the last step to 0.01 mm, or until ``max_travel``.
+3. Close: every finger DOF rises toward its maximum in ``close_step_deg`` steps (GraspIt!: 0.01
+   rad), with J2 = DOF and J3 = DOF/3. After each step the moving links are checked; on a
+   collision the step is bisected back to contact (to 1e-4 rad, i.e. under 0.02 mm at the
+   fingertip, inside GraspIt!'s 0.1 mm). The links colliding at the end of the bisected interval
+   are the ones in contact. A distal contact stops the finger. A proximal contact stops J2 only
+   (breakaway): the DOF keeps rising and J3 keeps following it until the distal link touches or
+   the DOF reaches its maximum. Closing ends when no finger can move.
+
+The fingers do not touch each other in this model (finger–finger and finger–palm collisions are
+not checked; at spread 0 fingers 1/2 pass beside finger 3), so each finger's motion depends only
+on the object and the three close independently, which is the same as closing them together.
+
+Speed: the object's convex hull gives a lower bound d on the distance to the object, and no point
+of a moving link travels faster than R per radian of DOF (R from the link corners), so a step of
+d / R is collision-free; autograsp takes max(d / R, step) and checks the end of the step. Far
+from the object that crosses free space in a few steps, near it the GraspIt! step applies. The
+result does not depend on the step size beyond the bisection tolerance unless a step jumps over
+an obstacle thinner than the distance a link moves in one step (2 mm at the fingertip for the
+default step).
+
+This module must not import torch (DESIGN.md §2).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from typing import NamedTuple
+
+import numpy as np
+import trimesh
+
+from grasp.quality import EPSILON_NO_CLOSURE, MU_RUBBER, contacts_quality
+from grasp.sim import CollisionScene, Contact, check_pose
+from hands.barrett import FINGERS, JOINT_NAMES
+from hands.barrett.kinematics import axis_rotation
+
+__all__ = [
+    "Contact",
+    "GraspResult",
+    "HandDofs",
+    "HandJoints",
+    "autograsp",
+    "joint_error_deg",
+    "pregrasp_pose",
+    "regrasp",
+]
+
+#: GraspIt!'s finger step: 0.01 rad.
+DEFAULT_CLOSE_STEP_DEG = math.degrees(0.01)
+#: GraspIt!'s approach step: 10 mm.
+DEFAULT_APPROACH_STEP_M = 0.010
+#: Bisection tolerances: approach (metres) and finger DOF (radians).
+APPROACH_TOL_M = 1e-5
+ANGLE_TOL_RAD = 1e-4
+#: Give up backing off out of collision after this distance.
+MAX_BACKOFF_M = 1.0
+#: Joint-error protocol: back off this far along the approach axis before regrasping.
+PREGRASP_BACKOFF_M = 0.2
+
+
+class HandJoints(NamedTuple):
+    """The 8 joint angles (degrees) in API order; index or access by name."""
+
+    f1_spread: float
+    f1_prox: float
+    f1_dist: float
+    f2_spread: float
+    f2_prox: float
+    f2_dist: float
+    f3_prox: float
+    f3_dist: float
+
+
+class HandDofs(NamedTuple):
+    """The 4 DOFs (degrees): spread and the three finger closing DOFs (motor angle, J2 units)."""
+
+    spread: float
+    f1: float
+    f2: float
+    f3: float
+
+
+@dataclass(frozen=True)
+class GraspResult:
+    """Outcome of one autograsp. "No grasp" is a value: ``success=False`` with a ``reason``.
+
+    Attributes
+    ----------
+    success : bool
+        True when the grasp has force closure (epsilon > 0).
+    reason : str
+        Why it succeeded or failed, in words.
+    palm_pose : (4, 4) float
+        Final palm→world pose (after the approach), metres.
+    joints_deg : HandJoints
+        The 8 joint angles in degrees.
+    dofs_deg : HandDofs
+        Spread and the three finger DOFs in degrees.
+    contacts : tuple of Contact
+        Link name, world point and inward normal of each contact.
+    epsilon, volume : float
+        Ferrari–Canny quality of the L1 grasp wrench space (``grasp.quality``); −1 and 0 without
+        force closure.
+    travel : float
+        Net distance moved along the palm's +z during the approach (negative: backed off).
+    finger_stops : tuple of 3 str
+        What stopped each finger: ``"distal"`` (distal contact), ``"breakaway-distal"``
+        (proximal stopped, then the distal touched), ``"breakaway-limit"`` (proximal stopped, the
+        DOF reached its maximum), ``"limit"`` (touched nothing).
+    """
+
+    success: bool
+    reason: str
+    palm_pose: np.ndarray
+    joints_deg: HandJoints
+    dofs_deg: HandDofs
+    contacts: tuple[Contact, ...] = ()
+    epsilon: float = EPSILON_NO_CLOSURE
+    volume: float = 0.0
+    travel: float = 0.0
+    finger_stops: tuple[str, ...] = field(default=("limit", "limit", "limit"))
+
+    def joint(self, name: str) -> float:
+        """One joint angle (degrees) by name, e.g. ``result.joint("f3_prox")``."""
+        if name not in JOINT_NAMES:
+            raise ValueError(f"unknown joint {name!r}; expected one of {JOINT_NAMES}")
+        return getattr(self.joints_deg, name)
+
+    def as_dict(self) -> dict:
+        """JSON-ready dictionary (lists instead of arrays)."""
+        return {
+            "success": self.success,
+            "reason": self.reason,
+            "palm_pose": np.asarray(self.palm_pose).tolist(),
+            "joints_deg": self.joints_deg._asdict(),
+            "dofs_deg": self.dofs_deg._asdict(),
+            "contacts": [
+                {"link": c.link, "point": c.point.tolist(), "normal": c.normal.tolist()}
+                for c in self.contacts
+            ],
+            "epsilon": self.epsilon,
+            "volume": self.volume,
+            "travel": self.travel,
+            "finger_stops": list(self.finger_stops),
+        }
+
+
+# -- helpers ---------------------------------------------------------------------------------------
+def _shift(pose: np.ndarray, distance: float) -> np.ndarray:
+    """``pose`` moved by ``distance`` along its own +z axis."""
+    out = pose.copy()
+    out[:3, 3] += distance * pose[:3, 2]
+    return out
+
+
+def pregrasp_pose(palm_pose: np.ndarray, backoff: float = PREGRASP_BACKOFF_M) -> np.ndarray:
+    """(4, 4) palm pose backed off by ``backoff`` metres along its approach axis (−z)."""
+    return _shift(check_pose(palm_pose), -float(backoff))
+
+
+def _scene_of(mesh: trimesh.Trimesh | CollisionScene) -> CollisionScene:
+    if isinstance(mesh, CollisionScene):
+        return mesh
+    if isinstance(mesh, trimesh.Trimesh):
+        return CollisionScene(mesh)
+    raise ValueError(f"mesh must be a trimesh.Trimesh or a CollisionScene, got {type(mesh)}")
+
+
+def _speed_bounds(scene: CollisionScene, finger: str) -> tuple[float, float]:
+    """Largest speed (m per rad of DOF) of any point of the finger: coupled closing, breakaway."""
+    kin = scene.kinematics
+    ratio = kin.params.distal_ratio
+    lever = float(np.linalg.norm(kin.joint(f"{finger}_dist").origin[:3, 3]))  # J2 → J3
+    prox = np.linalg.norm(scene.links[f"{finger}_prox"].corners, axis=1).max()
+    dist = np.linalg.norm(scene.links[f"{finger}_dist"].corners, axis=1).max()
+    # a distal point moves at most |p − J2| + ratio·|p − J3| per radian while both joints turn
+    return float(max(prox, lever + dist + ratio * dist)), float(ratio * dist)
+
+
+class _Search:
+    """First contact of some moving links along a 1-D motion parameter (stepping + bisection)."""
+
+    def __init__(self, scene: CollisionScene) -> None:
+        self.scene = scene
+
+    def colliding(self, poses: dict[str, np.ndarray]) -> list[str]:
+        return self.scene.colliding_links(poses)
+
+    def free_distance(self, poses: dict[str, np.ndarray]) -> float:
+        return min(self.scene.hull_distance(link, pose) for link, pose in poses.items())
+
+    def first_contact(
+        self,
+        poses_at: Callable[[float], dict[str, np.ndarray]],
+        start: float,
+        stop: float,
+        *,
+        step: float,
+        speed: float,
+        tol: float,
+    ) -> tuple[float, list[str]]:
+        """Largest free parameter before the first collision in [start, stop], and the links hit.
+
+        ``speed`` bounds how far (metres) any point of the moving links travels per unit of the
+        parameter. Returns (stop, []) when nothing is hit.
+        """
+        hit = self.colliding(poses_at(start))
+        if hit:
+            return start, hit
+        lo, use_hull = start, True
+        while lo < stop:
+            jump = 0.0
+            if use_hull:
+                # a step of d / speed cannot reach the convex hull, hence not the object
+                jump = self.free_distance(poses_at(lo)) / speed
+                use_hull = jump > 0.0  # inside the hull it stays ~0: stop asking
+            hi = min(lo + max(step, jump), stop)
+            hit = self.colliding(poses_at(hi))
+            if not hit:
+                lo = hi
+                continue
+            while hi - lo > tol:
+                mid = 0.5 * (lo + hi)
+                mid_hit = self.colliding(poses_at(mid))
+                if mid_hit:
+                    hi, hit = mid, mid_hit
+                else:
+                    lo = mid
+            return lo, hit
+        return stop, []
+
+
+def _approach(
+    search: _Search,
+    palm: np.ndarray,
+    joints_rad: np.ndarray,
+    *,
+    max_travel: float,
+    step: float,
+) -> tuple[np.ndarray, float] | None:
+    """Back off out of collision, then move along +z to the first contact. None if stuck."""
+    scene = search.scene
+    local = scene.kinematics.link_poses(joints_rad)
+
+    def poses_at(t: float) -> dict[str, np.ndarray]:
+        moved = _shift(palm, t)
+        return {link: moved @ pose for link, pose in local.items()}
+
+    back = 0.0
+    while search.colliding(poses_at(-back)):
+        back += step
+        if back > MAX_BACKOFF_M:
+            return None
+    start = -back
+    travel, _ = search.first_contact(
+        poses_at, start, start + max_travel, step=step, speed=1.0, tol=APPROACH_TOL_M
+    )
+    return _shift(palm, travel), travel
+
+
+def _close_finger(
+    search: _Search, knuckle: np.ndarray, finger: str, step: float
+) -> tuple[float, float, float, str]:
+    """Close one finger from open. Returns (DOF, J2, J3) in radians and what stopped it."""
+    kin = search.scene.kinematics
+    params = kin.params
+    ratio = params.distal_ratio
+    dof_max = math.radians(params.finger_dof_max_deg)
+    j2_max = math.radians(params.proximal_max_deg)
+    prox_name, dist_name = f"{finger}_prox", f"{finger}_dist"
+    speed_both, speed_distal = _speed_bounds(search.scene, finger)
+
+    def coupled(q: float) -> dict[str, np.ndarray]:
+        prox, dist = kin.finger_poses(knuckle, finger, min(q, j2_max), ratio * q)
+        return {prox_name: prox, dist_name: dist}
+
+    q, hit = search.first_contact(
+        coupled, 0.0, dof_max, step=step, speed=speed_both, tol=ANGLE_TOL_RAD
+    )
+    if not hit:
+        return q, min(q, j2_max), ratio * q, "limit"
+    if dist_name in hit:
+        return q, min(q, j2_max), ratio * q, "distal"
+    # breakaway: J2 frozen, the DOF keeps rising and J3 follows it
+    j2 = min(q, j2_max)
+    prox_pose, _ = kin.finger_poses(knuckle, finger, j2, 0.0)
+    j3_frame = prox_pose @ kin.joint(dist_name).origin
+    axis = kin.joint(dist_name).axis
+
+    def distal_only(dof: float) -> dict[str, np.ndarray]:
+        return {dist_name: j3_frame @ axis_rotation(axis, ratio * dof)}
+
+    q2, hit2 = search.first_contact(
+        distal_only, q, dof_max, step=step, speed=speed_distal, tol=ANGLE_TOL_RAD
+    )
+    return q2, j2, ratio * q2, "breakaway-distal" if hit2 else "breakaway-limit"
+
+
+# -- public API ------------------------------------------------------------------------------------
+def autograsp(
+    mesh: trimesh.Trimesh | CollisionScene,
+    palm_pose: np.ndarray,
+    *,
+    spread_deg: float = 0.0,
+    approach: bool = True,
+    max_travel: float = 0.2,
+    approach_step: float = DEFAULT_APPROACH_STEP_M,
+    close_step_deg: float = DEFAULT_CLOSE_STEP_DEG,
+    mu: float = MU_RUBBER,
+) -> GraspResult:
+    """Approach the object along the palm's +z and close the BarrettHand on it (GraspIt! rules).
+
+    Parameters
+    ----------
+    mesh : trimesh.Trimesh or CollisionScene
+        The object in world coordinates (metres). Pass a :class:`grasp.sim.CollisionScene` to
+        reuse one collision model for many grasps on the same mesh.
+    palm_pose : (4, 4) float
+        Initial palm→world pose; +z is the approach direction.
+    spread_deg : float
+        Spread of fingers 1 and 2, in [0, 180] degrees; fixed during the grasp.
+    approach : bool
+        Back off out of collision and approach to contact first; if False close where the hand is.
+    max_travel : float
+        Longest approach (metres) after backing off.
+    approach_step, close_step_deg : float
+        Step of the approach (metres) and of the finger DOFs (degrees) before bisection.
+    mu : float
+        Friction coefficient for the quality measure.
+
+    Returns
+    -------
+    GraspResult
+    """
+    scene = _scene_of(mesh)
+    palm = check_pose(palm_pose)
+    params = scene.kinematics.params
+    if not 0.0 <= spread_deg <= params.spread_max_deg:
+        raise ValueError(f"spread_deg must be in [0, {params.spread_max_deg}], got {spread_deg}")
+    if not (math.isfinite(max_travel) and max_travel >= 0.0):
+        raise ValueError(f"max_travel must be a finite distance >= 0, got {max_travel}")
+    if not approach_step > 0.0 or not close_step_deg > 0.0:
+        raise ValueError("approach_step and close_step_deg must be positive")
+    spread = math.radians(spread_deg)
+    open_rad = np.radians([spread_deg, 0, 0, spread_deg, 0, 0, 0, 0])
+    search = _Search(scene)
+
+    travel = 0.0
+    if approach:
+        moved = _approach(search, palm, open_rad, max_travel=max_travel, step=approach_step)
+        if moved is None:
+            joints = HandJoints(*np.degrees(open_rad))
+            return GraspResult(
+                False,
+                f"the hand is still in collision after backing off {MAX_BACKOFF_M} m",
+                palm,
+                joints,
+                HandDofs(spread_deg, 0.0, 0.0, 0.0),
+            )
+        palm, travel = moved
+
+    step = math.radians(close_step_deg)
+    dofs, joints, stops = [], {}, []
+    for finger in FINGERS:
+        knuckle = palm @ scene.kinematics.knuckle_pose(finger, spread)
+        q, j2, j3, stop = _close_finger(search, knuckle, finger, step)
+        dofs.append(math.degrees(q))
+        joints[f"{finger}_prox"], joints[f"{finger}_dist"] = math.degrees(j2), math.degrees(j3)
+        stops.append(stop)
+    joints["f1_spread"] = joints["f2_spread"] = spread_deg
+    hand_joints = HandJoints(**{name: joints[name] for name in JOINT_NAMES})
+
+    link_poses = scene.hand_link_poses(palm, np.radians(hand_joints))
+    contacts = tuple(scene.contacts(link_poses))
+    quality = contacts_quality(contacts, center=scene.center, max_radius=scene.max_radius, mu=mu)
+    if not contacts:
+        reason = "no contact: the hand closed on nothing"
+    elif quality.force_closure:
+        reason = "force closure"
+    else:
+        reason = f"no force closure ({len(contacts)} contacts)"
+    return GraspResult(
+        success=quality.force_closure,
+        reason=reason,
+        palm_pose=palm,
+        joints_deg=hand_joints,
+        dofs_deg=HandDofs(spread_deg, *dofs),
+        contacts=contacts,
+        epsilon=quality.epsilon,
+        volume=quality.volume,
+        travel=travel,
+        finger_stops=tuple(stops),
+    )
+
+
+def regrasp(
+    result: GraspResult,
+    mesh: trimesh.Trimesh | CollisionScene,
+    *,
+    backoff: float = PREGRASP_BACKOFF_M,
+    max_travel: float | None = None,
+    **options,
+) -> GraspResult:
+    """Grasp ``mesh`` again from ``result``'s pre-grasp pose (the joint-error protocol, §7).
+
+    The palm keeps ``result``'s orientation, approach line and spread; it is backed off by
+    ``backoff`` metres along the approach axis with the hand open, then approaches (up to
+    ``max_travel``, default ``backoff`` + 0.2 m) and autograsps ``mesh``. Extra keyword options go
+    to :func:`autograsp`.
+    """
+    if not backoff >= 0.0:
+        raise ValueError(f"backoff must be >= 0, got {backoff}")
+    travel = backoff + 0.2 if max_travel is None else max_travel
+    return autograsp(
+        mesh,
+        pregrasp_pose(result.palm_pose, backoff),
+        spread_deg=result.dofs_deg.spread,
+        approach=True,
+        max_travel=travel,
+        **options,
+    )
+
+
+def joint_error_deg(a: GraspResult, b: GraspResult) -> tuple[float, np.ndarray]:
+    """Mean and per-joint absolute joint difference in degrees: (mean, (8,) per joint)."""
+    per_joint = np.abs(np.asarray(a.joints_deg) - np.asarray(b.joints_deg))
+    return float(per_joint.mean()), per_joint
+
+
+def joints_of(results: Sequence[GraspResult]) -> np.ndarray:
+    """(n, 8) joint angles in degrees of several results."""
+    return np.array([r.joints_deg for r in results], dtype=np.float64).reshape(-1, 8)

@@ -1,0 +1,908 @@
+"""``python -m grasp.evaluate``: the paper's evaluation (Tables I–III) in one command.
+
+Scenes are generated on the fly, deterministically from ``--seed`` (:func:`make_sequence` of
+every condition × {train, test} split, ``--count`` sequences each), every completion model runs
+over each whole sequence (the parallel form, which is causal and equals streaming), and each view
+is scored against its ground truth:
+
+- Jaccard on the thresholded 40³ grids and F-score@1% / @2% of the grid side (both shapes meshed
+  by marching cubes, 8,192 seeded surface samples each; :mod:`grasp.metrics`), averaged over the
+  views of a sequence and then over sequences (Tables I and II);
+- grasp joint error on the final view of the single-object conditions (Table III): plan on the
+  predicted mesh, re-grasp the *true object mesh* placed in the latest camera frame from the same
+  pre-grasp pose (:func:`grasp.metrics.grasp_joint_error`). The paper swaps in "the ground truth
+  mesh"; we take the object's own mesh rather than a marching-cubes mesh of the 40³ target so
+  that the error measures the completion, not the voxelisation of the ground truth.
+
+Rows: the six models of the paper (single_view, mvp, mvt, lstm, mvp3, mvp6) plus the
+``registered_fusion`` reference: the union of every view's observed voxels so far, mapped into
+the latest view's grid with the known camera poses (what a user with a calibrated arm would do
+without a network; it assumes a static scene, so it smears the sliding object of slide_behind).
+Every row is scored wherever the metric applies (the paper leaves Single-View N/A for the
+conditions it did not train one on; a single-view model applies to every view of every
+condition, so we report it). Cells are null only where a metric does not apply: the joint error
+of the two-object conditions.
+
+Besides the main table: the held-out named pybullet_data objects (camera_pan, test only, one
+sequence per object) and, with ``--objects DIR``, every OBJ/STL/PLY mesh in a folder.
+
+Outputs in ``--out`` (default ``./evaluation/``): ``results.json``, ``results.md`` (the tables in
+the paper's layout), ``jaccard_per_view.png`` (the memory story: Jaccard against view index per
+condition and model), ``examples.png`` (final-view input, prediction of every row and ground
+truth) and ``grasps.png`` (the planned grasp on the prediction and the re-grasp on the truth).
+
+Cost: the grasp planner dominates. The default run plans few candidates on few sequences so that
+it fits in 10 minutes on two cores; ``--full`` uses the planner's full candidate count. Stage
+timings are printed at the end (summed over sequences, so over all worker processes).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import time
+import zlib
+from collections.abc import Iterable
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from completion import grid as G
+from completion.objects import load_object, object_ids, objects_in_folder
+from completion.scenes import CONDITIONS, SINGLE_OBJECT_CONDITIONS, VIEWS, Sequence
+
+MODEL_NAMES: tuple[str, ...] = ("single_view", "mvp", "mvt", "lstm", "mvp3", "mvp6")
+FUSION = "registered_fusion"
+ROWS: tuple[str, ...] = (*MODEL_NAMES, FUSION)
+ROW_LABELS = {
+    "single_view": "Single-View", "mvp": "MVP", "mvt": "MVT", "lstm": "LSTM", "mvp3": "MVP3",
+    "mvp6": "MVP6", FUSION: "Registered fusion (ref.)",
+}
+#: Column order of the paper's tables.
+PAPER_ORDER: tuple[str, ...] = (
+    "object_hiding", "object_reveal", "camera_pan", "slide_behind", "two_object_pan",
+)
+CONDITION_LABELS = {
+    "object_hiding": "Object Hiding", "object_reveal": "Object Reveal", "camera_pan": "Camera Pan",
+    "slide_behind": "Slide Behind Other", "two_object_pan": "Two Object Pan",
+}
+EVAL_SPLITS: tuple[str, ...] = ("train", "test")
+METRICS: tuple[str, ...] = ("jaccard", "fscore_1", "fscore_2", "joint_error_deg")
+METRIC_TITLES = {
+    "jaccard": "Table I: Jaccard (mean over views; higher is better)",
+    "fscore_1": "Table II: F-score@1% (mean over views; higher is better)",
+    "fscore_2": "F-score@2% (mean over views; higher is better)",
+    "joint_error_deg": "Table III: grasp joint error, degrees (final view; lower is better)",
+}
+HIGHER_IS_BETTER = {"jaccard": True, "fscore_1": True, "fscore_2": True, "joint_error_deg": False}
+#: The condition of the named-object and ``--objects`` tables.
+OBJECT_TABLE_CONDITION = "camera_pan"
+NAMED_OBJECTS_TABLE = "named"
+FOLDER_TABLE = "objects"
+MAIN_TABLE = "main"
+
+
+@dataclass(frozen=True)
+class Preset:
+    """Sizes of a run: sequences per (condition, split), named objects, planner candidates."""
+
+    count: int
+    named: int
+    candidates: int
+    grasp_count: int  # sequences per (condition, split) that are also grasped
+
+
+PRESETS: dict[str, Preset] = {
+    # ≈ 2–3 minutes on two cores: a smoke test of the whole chain.
+    "quick": Preset(count=2, named=4, candidates=8, grasp_count=1),
+    # ≤ 10 minutes on two cores (the command with no arguments).
+    "default": Preset(count=6, named=10, candidates=12, grasp_count=3),
+    # The paper-sized run: hours on two cores, use --workers on a bigger machine.
+    "full": Preset(count=50, named=10, candidates=64, grasp_count=50),
+}
+
+
+@dataclass(frozen=True)
+class Settings:
+    """Everything a run depends on (written to results.json as ``config``)."""
+
+    rows: tuple[str, ...] = ROWS
+    model_paths: tuple[tuple[str, str], ...] = ()  # (name, checkpoint path) per model row
+    conditions: tuple[str, ...] = CONDITIONS
+    count: int = PRESETS["default"].count
+    grasp_count: int = PRESETS["default"].grasp_count
+    named: int = PRESETS["default"].named
+    objects: tuple[str, ...] = ()  # file: ids of --objects DIR
+    views: int = VIEWS
+    seed: int = 0
+    candidates: int = PRESETS["default"].candidates
+    samples: int = 8192
+    workers: int = 1
+    examples: bool = True
+
+    def __post_init__(self) -> None:
+        unknown = [r for r in self.rows if r not in ROWS]
+        if unknown or not self.rows:
+            raise ValueError(f"rows must be a non-empty subset of {ROWS}, got {self.rows}")
+        bad = [c for c in self.conditions if c not in CONDITIONS]
+        if bad:
+            raise ValueError(f"conditions must be among {CONDITIONS}, got {bad}")
+        missing = [r for r in self.rows if r != FUSION and r not in dict(self.model_paths)]
+        if missing:
+            raise ValueError(f"no checkpoint path given for model rows {missing}")
+        for name in ("count", "grasp_count", "named", "candidates", "samples", "workers"):
+            if getattr(self, name) < (1 if name in ("candidates", "samples", "workers") else 0):
+                raise ValueError(f"{name} out of range: {getattr(self, name)}")
+        if self.views < 2:
+            raise ValueError(f"views must be >= 2, got {self.views}")
+
+
+@dataclass(frozen=True)
+class Job:
+    """One sequence to evaluate."""
+
+    table: str  # MAIN_TABLE, NAMED_OBJECTS_TABLE or FOLDER_TABLE
+    condition: str
+    split: str
+    index: int
+    pool: tuple[str, ...] | None = None  # object ids to draw from (None: the split's library)
+    grasp: bool = False
+    example: bool = False
+
+
+@dataclass
+class Timings:
+    """Seconds spent per stage (summed over sequences)."""
+
+    generation: float = 0.0
+    inference: float = 0.0
+    completion_metrics: float = 0.0
+    grasping: float = 0.0
+
+    def add(self, other: Timings) -> None:
+        for k, v in asdict(other).items():
+            setattr(self, k, getattr(self, k) + v)
+
+
+@dataclass
+class SequenceResult:
+    job: Job
+    object_ids: list[str]
+    # row -> metric -> per-view list (jaccard, fscore_1, fscore_2)
+    per_view: dict[str, dict[str, list[float]]]
+    # row -> JointError.as_dict() (only for grasped jobs)
+    grasps: dict[str, dict] = field(default_factory=dict)
+    timings: Timings = field(default_factory=Timings)
+    example: dict | None = None  # final-view grids for the figures
+
+
+# ------------------------------------------------------------------------------ fusion baseline
+
+#: Sub-voxel offsets (in voxels) at which an observed voxel is carried into another grid, so that
+#: a coarser source grid leaves no holes in a finer destination grid.
+_SUBVOXEL = np.array([[x, y, z] for x in (-0.25, 0.25) for y in (-0.25, 0.25) for z in (-0.25, 0.25)])
+
+
+def registered_fusion(
+    inputs: np.ndarray, grid_to_camera: np.ndarray, camera_to_world: np.ndarray
+) -> np.ndarray:
+    """The known-pose reference: (L, 40, 40, 40) bool, view t = union of views 0…t in grid t.
+
+    inputs : (L, 40, 40, 40) bool observed voxels; grid_to_camera, camera_to_world : (L, 4, 4)
+    Each observed voxel (8 sub-voxel points) goes grid s → camera s → world → camera t → grid t.
+    """
+    inputs = np.asarray(inputs, dtype=bool)
+    n = len(inputs)
+    if inputs.shape[1:] != G.GRID_SHAPE or grid_to_camera.shape != (n, 4, 4):
+        raise ValueError("inputs must be (L, 40, 40, 40) with (L, 4, 4) transforms")
+    fused = np.zeros_like(inputs)
+    world: list[np.ndarray] = []
+    for t in range(n):
+        idx = np.argwhere(inputs[t]).astype(np.float64)
+        sub = (idx[:, None, :] + _SUBVOXEL[None]).reshape(-1, 3)
+        cam = G.indices_to_points(sub, grid_to_camera[t])
+        world.append(G.transform_points(cam, camera_to_world[t]))
+        seen = np.concatenate(world)
+        to_camera_t = np.linalg.inv(camera_to_world[t])
+        fused[t] = G.voxelize_points(G.transform_points(seen, to_camera_t), grid_to_camera[t])
+    return fused
+
+
+# ------------------------------------------------------------------------------ per-sequence work
+
+
+def _key_seed(*parts: object) -> int:
+    """A stable 32-bit seed from the job's identity (same seed → same samples and grasps)."""
+    return zlib.crc32("/".join(map(str, parts)).encode())
+
+
+def truth_mesh_in_latest_camera(seq: Sequence):
+    """The true object mesh (single-object sequences) posed in the final view's camera frame."""
+    ids = seq.meta["object_ids"]
+    if len(ids) != 1:
+        raise ValueError(f"the grasp ground truth needs a single-object sequence, got {ids}")
+    mesh = load_object(ids[0])
+    object_to_world = np.asarray(seq.meta["object_to_world"][-1][0])
+    mesh.apply_transform(np.linalg.inv(seq.camera_to_world[-1]) @ object_to_world)
+    return mesh
+
+
+class Evaluator:
+    """Owns what a worker keeps between sequences: a renderer and the loaded models."""
+
+    def __init__(self, settings: Settings) -> None:
+        import torch
+
+        from completion.model import load_model, read_checkpoint
+        from completion.render import Renderer
+
+        self.settings = settings
+        self.renderer = Renderer()
+        self.models = {}
+        self.thresholds: dict[str, float] = {}
+        for name, path in settings.model_paths:
+            if name not in settings.rows:
+                continue
+            model = load_model(path).eval()
+            stored = read_checkpoint(path).get("threshold")
+            self.thresholds[name] = float(getattr(model, "threshold", stored or 0.5) or 0.5)
+            self.models[name] = model
+        self.thresholds[FUSION] = 0.5  # a bool grid: meshed between empty and occupied
+        self._torch = torch
+
+    def close(self) -> None:
+        self.renderer.close()
+
+    def probabilities(self, seq: Sequence) -> dict[str, np.ndarray]:
+        """row -> (L, 40, 40, 40) occupancy probabilities (bool for the fusion reference)."""
+        torch = self._torch
+        x = torch.from_numpy(seq.inputs[None].astype(np.float32))
+        out: dict[str, np.ndarray] = {}
+        with torch.no_grad():
+            for name in self.settings.rows:
+                if name == FUSION:
+                    out[name] = registered_fusion(seq.inputs, seq.grid_to_camera, seq.camera_to_world)
+                else:
+                    out[name] = torch.sigmoid(self.models[name](x))[0].numpy()
+        return out
+
+    def evaluate(self, job: Job) -> SequenceResult:
+        from completion.scenes import make_sequence
+        from grasp import metrics
+
+        s = self.settings
+        timings = Timings()
+        t0 = time.perf_counter()
+        seq = make_sequence(
+            job.condition, job.split, job.index, s.seed, views=s.views,
+            pool=list(job.pool) if job.pool is not None else None, renderer=self.renderer,
+        )
+        t1 = time.perf_counter()
+        probs = self.probabilities(seq)
+        t2 = time.perf_counter()
+        per_view = {row: {"jaccard": [], "fscore_1": [], "fscore_2": []} for row in s.rows}
+        for v in range(len(seq)):
+            seed = _key_seed(s.seed, job.table, job.condition, job.split, job.index, v)
+            transform = seq.grid_to_camera[v]
+            truth = metrics.grid_surface_sample(
+                seq.targets[v], transform, threshold=0.5, count=s.samples, seed=seed
+            )
+            for row in s.rows:
+                p, thr = probs[row][v], self.thresholds[row]
+                occ = p >= thr
+                scores = metrics.fscore_grids(
+                    p, seq.targets[v], transform, threshold=thr, count=s.samples, seed=seed,
+                    target_sample=truth,
+                )
+                per_view[row]["jaccard"].append(metrics.jaccard(occ, seq.targets[v]))
+                per_view[row]["fscore_1"].append(scores[0].fscore)
+                per_view[row]["fscore_2"].append(scores[1].fscore)
+        t3 = time.perf_counter()
+        grasps: dict[str, dict] = {}
+        if job.grasp and job.condition in SINGLE_OBJECT_CONDITIONS:
+            truth_mesh = truth_mesh_in_latest_camera(seq)
+            seed = _key_seed(s.seed, job.table, job.condition, job.split, job.index, "grasp")
+            for row in s.rows:
+                mesh = metrics.mesh_or_none(
+                    probs[row][-1], seq.grid_to_camera[-1], threshold=self.thresholds[row]
+                )
+                grasps[row] = metrics.grasp_joint_error(
+                    mesh, truth_mesh, n_candidates=s.candidates, seed=seed
+                ).as_dict()
+        t4 = time.perf_counter()
+        timings.generation, timings.inference = t1 - t0, t2 - t1
+        timings.completion_metrics, timings.grasping = t3 - t2, t4 - t3
+        example = None
+        if job.example:
+            example = {
+                "input": np.packbits(seq.inputs[-1]),
+                "target": np.packbits(seq.targets[-1]),
+                "grid_to_camera": seq.grid_to_camera[-1],
+                "camera_to_world": seq.camera_to_world[-1],
+                "object_to_world": seq.meta["object_to_world"][-1],
+                "rows": {r: np.packbits(probs[r][-1] >= self.thresholds[r]) for r in s.rows},
+                "probabilities": {
+                    r: probs[r][-1].astype(np.float16) for r in s.rows if r in grasps
+                },
+                "thresholds": dict(self.thresholds),
+            }
+        return SequenceResult(
+            job, list(seq.meta["object_ids"]), per_view, grasps, timings, example
+        )
+
+
+_WORKER: Evaluator | None = None
+
+
+def _init_worker(settings: Settings) -> None:
+    global _WORKER
+    import torch
+
+    torch.set_num_threads(1)
+    _WORKER = Evaluator(settings)
+
+
+def _run_job(job: Job) -> SequenceResult:
+    assert _WORKER is not None, "worker not initialised"
+    return _WORKER.evaluate(job)
+
+
+# ------------------------------------------------------------------------------ planning the run
+
+
+def make_jobs(settings: Settings) -> list[Job]:
+    """Every sequence of the run, in a fixed order (results do not depend on the workers)."""
+    jobs = []
+    for condition in settings.conditions:
+        for split in EVAL_SPLITS:
+            for index in range(settings.count):
+                jobs.append(Job(
+                    MAIN_TABLE, condition, split, index,
+                    grasp=index < settings.grasp_count, example=split == "test" and index == 0,
+                ))
+    named = object_ids("test", sources=("named",))[: settings.named]
+    for index, object_id in enumerate(named):
+        jobs.append(Job(
+            NAMED_OBJECTS_TABLE, OBJECT_TABLE_CONDITION, "test", index, pool=(object_id,),
+            grasp=True, example=index == 0,
+        ))
+    for index, object_id in enumerate(settings.objects):
+        jobs.append(Job(
+            FOLDER_TABLE, OBJECT_TABLE_CONDITION, "test", index, pool=(object_id,),
+            grasp=True, example=index == 0,
+        ))
+    return jobs
+
+
+def run_jobs(settings: Settings, jobs: list[Job], *, progress: bool = True) -> list[SequenceResult]:
+    """Evaluate every job, in a process pool when ``settings.workers > 1``; results in job order."""
+    from tqdm import tqdm
+
+    bar = tqdm(total=len(jobs), desc="evaluate", unit="seq", disable=not progress)
+    results: list[SequenceResult] = []
+    try:
+        if settings.workers <= 1 or len(jobs) <= 1:
+            import torch
+
+            threads = torch.get_num_threads()
+            _init_worker(settings)
+            try:
+                for job in jobs:
+                    results.append(_run_job(job))
+                    bar.update()
+            finally:
+                torch.set_num_threads(threads)
+                if _WORKER is not None:
+                    _WORKER.close()
+        else:
+            import multiprocessing as mp
+            from concurrent.futures import ProcessPoolExecutor
+
+            # spawn: torch and pybullet do not survive fork with live threads/clients.
+            with ProcessPoolExecutor(
+                settings.workers, mp_context=mp.get_context("spawn"),
+                initializer=_init_worker, initargs=(settings,),
+            ) as pool:
+                for result in pool.map(_run_job, jobs, chunksize=1):
+                    results.append(result)
+                    bar.update()
+    finally:
+        bar.close()
+    return results
+
+
+# ------------------------------------------------------------------------------ aggregation
+
+
+def _mean(values: Iterable[float]) -> float | None:
+    vals = [v for v in values if v is not None]
+    return round(float(np.mean(vals)), 4) if vals else None
+
+
+def aggregate(results: list[SequenceResult], settings: Settings, table: str) -> dict:
+    """Tables for one set of sequences: metric -> row -> condition -> split -> value (or None).
+
+    Also ``counts`` (sequences and successful grasps per cell), ``grasp_failures`` (reasons) and
+    ``per_view`` (Jaccard per view index, mean over sequences).
+    """
+    mine = [r for r in results if r.job.table == table]
+    conditions = sorted({r.job.condition for r in mine}, key=CONDITIONS.index)
+    splits = [s for s in EVAL_SPLITS if any(r.job.split == s for r in mine)]
+    tables: dict = {m: {} for m in METRICS}
+    counts: dict = {}
+    per_view: dict = {}
+    failures: dict = {}
+    for row in settings.rows:
+        for m in METRICS:
+            tables[m][row] = {}
+        counts[row], per_view[row], failures[row] = {}, {}, {}
+        for c in conditions:
+            for m in METRICS:
+                tables[m][row][c] = {}
+            counts[row][c], per_view[row][c], failures[row][c] = {}, {}, {}
+            for s in splits:
+                cell = [r for r in mine if r.job.condition == c and r.job.split == s]
+                for m in ("jaccard", "fscore_1", "fscore_2"):
+                    tables[m][row][c][s] = _mean(np.mean(r.per_view[row][m]) for r in cell)
+                grasped = [r.grasps[row] for r in cell if row in r.grasps]
+                ok = [g["error_deg"] for g in grasped if g["error_deg"] is not None]
+                applies = c in SINGLE_OBJECT_CONDITIONS
+                tables["joint_error_deg"][row][c][s] = _mean(ok) if applies else None
+                counts[row][c][s] = {"sequences": len(cell), "grasped": len(grasped),
+                                     "grasp_ok": len(ok)}
+                failures[row][c][s] = sorted({g["reason"] for g in grasped if g["reason"]})
+                per_view[row][c][s] = [
+                    round(float(v), 4)
+                    for v in np.mean([r.per_view[row]["jaccard"] for r in cell], axis=0)
+                ] if cell else []
+    return {"tables": tables, "counts": counts, "per_view_jaccard": per_view,
+            "grasp_failures": failures, "conditions": conditions, "splits": splits}
+
+
+def per_object_records(results: list[SequenceResult], settings: Settings) -> list[dict]:
+    records = []
+    for r in results:
+        for row in settings.rows:
+            g = r.grasps.get(row)
+            records.append({
+                "table": r.job.table, "condition": r.job.condition, "split": r.job.split,
+                "index": r.job.index, "object_ids": r.object_ids, "model": row,
+                "jaccard": _mean(r.per_view[row]["jaccard"]),
+                "fscore_1": _mean(r.per_view[row]["fscore_1"]),
+                "fscore_2": _mean(r.per_view[row]["fscore_2"]),
+                "jaccard_per_view": [round(v, 4) for v in r.per_view[row]["jaccard"]],
+                "joint_error_deg": None if g is None else g["error_deg"],
+                "joint_error_per_joint_deg": None if g is None else g["per_joint_deg"],
+                "grasp": g,
+            })
+    return records
+
+
+def build_results(results: list[SequenceResult], settings: Settings, wall: dict) -> dict:
+    timings = Timings()
+    for r in results:
+        timings.add(r.timings)
+    main = aggregate(results, settings, MAIN_TABLE)
+    out = {
+        "tables": main["tables"],
+        "counts": main["counts"],
+        "grasp_failures": main["grasp_failures"],
+        "per_view_jaccard": main["per_view_jaccard"],
+        "named_objects": None,
+        "objects_dir": None,
+        "per_object": per_object_records(results, settings),
+        "config": _config_dict(settings),
+        "timings_s": {
+            "stages_summed_over_sequences": {k: round(v, 2) for k, v in asdict(timings).items()},
+            "wall": {k: round(v, 2) for k, v in wall.items()},
+        },
+    }
+    for table, key in ((NAMED_OBJECTS_TABLE, "named_objects"), (FOLDER_TABLE, "objects_dir")):
+        if any(r.job.table == table for r in results):
+            agg = aggregate(results, settings, table)
+            c = OBJECT_TABLE_CONDITION
+            out[key] = {
+                "condition": c,
+                "split": "test",
+                "tables": {m: {row: agg["tables"][m][row][c]["test"] for row in settings.rows}
+                           for m in METRICS},
+                "counts": {row: agg["counts"][row][c]["test"] for row in settings.rows},
+                "grasp_failures": {row: agg["grasp_failures"][row][c]["test"]
+                                   for row in settings.rows},
+                "objects": [r.object_ids[0] for r in results if r.job.table == table],
+            }
+    return out
+
+
+def _config_dict(settings: Settings) -> dict:
+    d = asdict(settings)
+    d["model_paths"] = dict(settings.model_paths)
+    d["objects"] = list(settings.objects)
+    d["fscore_fractions"] = [0.01, 0.02]
+    d["splits"] = list(EVAL_SPLITS)
+    return d
+
+
+# ------------------------------------------------------------------------------ reporting
+
+
+def _fmt(value: float | None, metric: str) -> str:
+    if value is None:
+        return "—"
+    return f"{value:.2f}°" if metric == "joint_error_deg" else f"{value:.2f}"
+
+
+def _best(values: list[float | None], metric: str) -> float | None:
+    vals = [v for v in values if v is not None]
+    if not vals:
+        return None
+    return max(vals) if HIGHER_IS_BETTER[metric] else min(vals)
+
+
+def markdown_table(results: dict, metric: str) -> str:
+    """One of the paper's tables: rows = models, columns = condition × (train, test)."""
+    tables = results["tables"][metric]
+    rows = list(tables)
+    conditions = [c for c in PAPER_ORDER if c in next(iter(tables.values()), {})]
+    if metric == "joint_error_deg":
+        conditions = [c for c in conditions if c in SINGLE_OBJECT_CONDITIONS]
+    header = "| Model | " + " | ".join(
+        f"{CONDITION_LABELS[c]} {s}" for c in conditions for s in ("train", "test")
+    ) + " |"
+    lines = [header, "|" + "---|" * (1 + 2 * len(conditions))]
+    learned = [r for r in rows if r != FUSION]
+    for row in rows:
+        cells = []
+        for c in conditions:
+            for s in ("train", "test"):
+                v = tables[row][c].get(s)
+                best = _best([tables[r][c].get(s) for r in learned], metric)
+                text = _fmt(v, metric)
+                if v is not None and row != FUSION and v == best and len(learned) > 1:
+                    text = f"**{text}**"
+                cells.append(text)
+        lines.append(f"| {ROW_LABELS[row]} | " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+def markdown_object_table(block: dict) -> str:
+    """Rows = models, columns = the four metrics (camera_pan, test objects only)."""
+    tables = block["tables"]
+    rows = list(tables["jaccard"])
+    lines = ["| Model | Jaccard | F@1% | F@2% | Joint error | grasps ok |", "|---|---|---|---|---|---|"]
+    for row in rows:
+        n = block["counts"][row]
+        cells = [_fmt(tables[m][row], m) for m in METRICS]
+        lines.append(f"| {ROW_LABELS[row]} | " + " | ".join(cells)
+                     + f" | {n['grasp_ok']}/{n['grasped']} |")
+    return "\n".join(lines)
+
+
+def markdown_report(results: dict) -> str:
+    cfg = results["config"]
+    parts = [
+        "# Evaluation: Multiple View Performers for Shape Completion",
+        "",
+        f"Seed {cfg['seed']}, {cfg['count']} sequences per condition and split "
+        f"({cfg['views']} views each), grasps on the first {cfg['grasp_count']} of them "
+        f"({cfg['candidates']} planner candidates). Values are means over sequences of the mean "
+        "over views; the joint error is on the final view of the single-object conditions only "
+        "(— where it does not apply, or where no grasp could be compared). Bold: best learned "
+        "model per column. The registered-fusion row is a reference with known camera poses, "
+        "not a model of the paper.",
+        "",
+    ]
+    for metric in METRICS:
+        parts += [f"## {METRIC_TITLES[metric]}", "", markdown_table(results, metric), ""]
+    counts = results["counts"]
+    lines = []
+    for row, per_cond in counts.items():
+        for c, per_split in per_cond.items():
+            for s, n in per_split.items():
+                if c in SINGLE_OBJECT_CONDITIONS and n["grasped"] and n["grasp_ok"] < n["grasped"]:
+                    reasons = "; ".join(results["grasp_failures"][row][c][s])
+                    lines.append(f"- {ROW_LABELS[row]}, {CONDITION_LABELS[c]} {s}: "
+                                 f"{n['grasped'] - n['grasp_ok']} of {n['grasped']} without a "
+                                 f"comparable grasp ({reasons})")
+    if lines:
+        parts += ["Grasps left out of Table III (no prediction surface or no grasp found):", "",
+                  *lines, ""]
+    for key, title in (("named_objects", "Held-out named pybullet_data objects"),
+                       ("objects_dir", "Objects from --objects")):
+        block = results.get(key)
+        if block:
+            parts += [f"## {title} (camera pan, test)", "",
+                      f"Objects: {', '.join(block['objects'])}", "", markdown_object_table(block),
+                      ""]
+    t = results["timings_s"]
+    parts += ["## Timings (seconds)", "",
+              "| stage | seconds |", "|---|---|",
+              *[f"| {k} (summed over sequences) | {v:.1f} |"
+                for k, v in t["stages_summed_over_sequences"].items()],
+              *[f"| wall: {k} | {v:.1f} |" for k, v in t["wall"].items()], "",
+              "Notes: F-score samples 8,192 points on each marching-cubes surface (same seed for "
+              "both sides); resampling the very same surface already costs a few points of "
+              "F@1% (d is 0.4 voxel), so F@1% is below 1 even for a perfect completion. An "
+              "empty prediction scores F = 0. Single-View is scored on every condition (the "
+              "paper leaves some cells N/A).", ""]
+    return "\n".join(parts)
+
+
+# ------------------------------------------------------------------------------ figures
+
+
+def _unpack(bits: np.ndarray) -> np.ndarray:
+    return np.unpackbits(bits)[: G.GRID_SIZE**3].astype(bool).reshape(G.GRID_SHAPE)
+
+
+def write_figures(results: dict, raw: list[SequenceResult], out: Path) -> list[Path]:
+    """jaccard_per_view.png, examples.png and grasps.png (when there are grasps)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    written = []
+    per_view = results["per_view_jaccard"]
+    rows = list(per_view)
+    conditions = [c for c in PAPER_ORDER if c in next(iter(per_view.values()), {})]
+    if conditions:
+        fig, axes = plt.subplots(1, len(conditions), figsize=(3.6 * len(conditions), 3.4),
+                                 squeeze=False, sharey=True)
+        for ax, c in zip(axes[0], conditions, strict=True):
+            for row in rows:
+                split = "test" if per_view[row][c].get("test") else "train"
+                ys = per_view[row][c].get(split) or []
+                style = "--" if row == FUSION else "-"
+                ax.plot(range(1, len(ys) + 1), ys, style, marker=".", label=ROW_LABELS[row])
+            ax.set_title(CONDITION_LABELS[c])
+            ax.set_xlabel("view")
+            ax.grid(alpha=0.3)
+        axes[0][0].set_ylabel("Jaccard (test)")
+        axes[0][-1].legend(fontsize=7, loc="lower right")
+        fig.tight_layout()
+        path = out / "jaccard_per_view.png"
+        fig.savefig(path, dpi=110)
+        plt.close(fig)
+        written.append(path)
+
+    examples = [r for r in raw if r.example is not None]
+    if examples:
+        row_names = list(examples[0].example["rows"])
+        cols = ["input", "ground truth", *row_names]
+        fig = plt.figure(figsize=(1.9 * len(cols), 2.0 * len(examples)))
+        for i, r in enumerate(examples):
+            ex = r.example
+            grids = [_unpack(ex["input"]), _unpack(ex["target"]),
+                     *[_unpack(ex["rows"][n]) for n in row_names]]
+            for j, (title, occ) in enumerate(zip(cols, grids, strict=True)):
+                ax = fig.add_subplot(len(examples), len(cols), i * len(cols) + j + 1,
+                                     projection="3d")
+                pts = np.argwhere(occ)
+                if len(pts) > 2500:
+                    pts = pts[np.random.default_rng(0).choice(len(pts), 2500, replace=False)]
+                if len(pts):
+                    # camera axes: x right, y down, z forward; draw y up for a natural view
+                    ax.scatter(pts[:, 0], pts[:, 2], -pts[:, 1], s=1, c=pts[:, 2], cmap="viridis")
+                ax.set_xlim(0, 40)
+                ax.set_ylim(0, 40)
+                ax.set_zlim(-40, 0)
+                ax.set_axis_off()
+                ax.view_init(elev=20, azim=-60)
+                if i == 0:
+                    ax.set_title(ROW_LABELS.get(title, title), fontsize=8)
+                if j == 0:
+                    ax.text2D(-0.1, 0.5, f"{r.job.table}\n{CONDITION_LABELS[r.job.condition]}",
+                              transform=ax.transAxes, fontsize=7, rotation=90, va="center")
+        fig.suptitle("Final view: input, ground truth and each row's completion", fontsize=9)
+        path = out / "examples.png"
+        fig.savefig(path, dpi=100)
+        plt.close(fig)
+        written.append(path)
+
+    path = _grasp_figure(raw, out, plt)
+    if path is not None:
+        written.append(path)
+    return written
+
+
+def _grasp_figure(raw: list[SequenceResult], out: Path, plt) -> Path | None:
+    """The planned palm pose on each example's prediction and the truth mesh, per row."""
+    from grasp import metrics
+
+    shown = [r for r in raw if r.example is not None and r.grasps]
+    if not shown:
+        return None
+    row_names = [n for n in shown[0].grasps]
+    fig = plt.figure(figsize=(2.6 * len(row_names), 2.6 * len(shown)))
+    for i, r in enumerate(shown):
+        ex = r.example
+        seq_like = Sequence(np.zeros((1, *G.GRID_SHAPE), bool), np.zeros((1, *G.GRID_SHAPE), bool),
+                            ex["grid_to_camera"][None], ex["camera_to_world"][None],
+                            {"object_ids": r.object_ids, "object_to_world": [ex["object_to_world"]]})
+        truth = truth_mesh_in_latest_camera(seq_like)
+        for j, name in enumerate(row_names):
+            ax = fig.add_subplot(len(shown), len(row_names), i * len(row_names) + j + 1,
+                                 projection="3d")
+            g = r.grasps[name]
+            pred = metrics.mesh_or_none(ex["probabilities"][name].astype(np.float32),
+                                        ex["grid_to_camera"], threshold=ex["thresholds"][name])
+            for mesh, color in ((truth, "tab:gray"), (pred, "tab:orange")):
+                if mesh is not None:
+                    v = mesh.vertices
+                    ax.plot_trisurf(v[:, 0], v[:, 2], -v[:, 1], triangles=mesh.faces,
+                                    color=color, alpha=0.35, linewidth=0)
+            if g["palm_pose"] is not None:
+                pose = np.asarray(g["palm_pose"])
+                o = pose[:3, 3]
+                for axis, color in zip(range(3), ("r", "g", "b"), strict=True):
+                    e = o + 0.05 * pose[:3, axis]
+                    ax.plot([o[0], e[0]], [o[2], e[2]], [-o[1], -e[1]], color=color)
+            err = g["error_deg"]
+            ax.set_title(f"{ROW_LABELS[name]}\n"
+                         + (f"{err:.1f}°" if err is not None else g["reason"][:30]), fontsize=7)
+            ax.set_axis_off()
+    fig.suptitle("Planned palm pose (z = approach, blue) on prediction (orange) vs truth (grey)",
+                 fontsize=9)
+    path = out / "grasps.png"
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+    return path
+
+
+# ------------------------------------------------------------------------------ command line
+
+
+def evaluate(settings: Settings, *, out: Path | None = None, progress: bool = True) -> dict:
+    """Run the whole evaluation; write results.json, results.md and figures when ``out``."""
+    t0 = time.perf_counter()
+    jobs = make_jobs(settings)
+    raw = run_jobs(settings, jobs, progress=progress)
+    t1 = time.perf_counter()
+    wall = {"sequences": t1 - t0}
+    results = build_results(raw, settings, wall)
+    if out is not None:
+        out.mkdir(parents=True, exist_ok=True)
+        t2 = time.perf_counter()
+        if settings.examples:
+            write_figures(results, raw, out)
+        results["timings_s"]["wall"]["figures"] = round(time.perf_counter() - t2, 2)
+        results["timings_s"]["wall"]["total"] = round(time.perf_counter() - t0, 2)
+        (out / "results.json").write_text(json.dumps(results, indent=1))
+        (out / "results.md").write_text(markdown_report(results))
+    else:
+        results["timings_s"]["wall"]["total"] = round(time.perf_counter() - t0, 2)
+    return results
+
+
+def _list_arg(choices: tuple[str, ...], what: str):
+    def parse(text: str) -> tuple[str, ...]:
+        items = tuple(x.strip() for x in text.split(",") if x.strip())
+        if text.strip() == "all":
+            return choices
+        bad = [x for x in items if x not in choices]
+        if bad or not items:
+            raise argparse.ArgumentTypeError(
+                f"expected a comma-separated list of {what} from {', '.join(choices)} (or 'all'), "
+                f"got {text!r}"
+            )
+        return tuple(dict.fromkeys(items))
+
+    return parse
+
+
+def _positive(minimum: int):
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}") from None
+        if value < minimum:
+            raise argparse.ArgumentTypeError(f"expected an integer >= {minimum}, got {value}")
+        return value
+
+    return parse
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="python -m grasp.evaluate",
+        description="The paper's evaluation: Jaccard, F-score@1%/2% and grasp joint error for "
+        "every model on freshly generated scenes (deterministic from --seed).",
+    )
+    size = p.add_mutually_exclusive_group()
+    size.add_argument("--quick", action="store_const", const="quick", dest="preset",
+                      help="a smoke test of the whole chain (a few minutes)")
+    size.add_argument("--full", action="store_const", const="full", dest="preset",
+                      help="paper-sized: more sequences and the full planner (hours on 2 cores)")
+    p.set_defaults(preset="default")
+    p.add_argument("--conditions", type=_list_arg(CONDITIONS, "conditions"), default=CONDITIONS,
+                   help="comma-separated conditions (default: all five)")
+    p.add_argument("--models", type=_list_arg(ROWS, "rows"), default=ROWS,
+                   help=f"comma-separated rows (default: all of {', '.join(ROWS)})")
+    p.add_argument("--objects", type=Path, default=None, metavar="DIR",
+                   help="also evaluate every OBJ/STL/PLY mesh in DIR (camera pan, one sequence each)")
+    p.add_argument("--count", type=_positive(1), default=None,
+                   help="sequences per condition and split (overrides the preset)")
+    p.add_argument("--grasp-count", type=_positive(0), default=None,
+                   help="of those, how many are also grasped (single-object conditions)")
+    p.add_argument("--named", type=_positive(0), default=None,
+                   help="held-out named pybullet_data objects to evaluate (0 = none)")
+    p.add_argument("--candidates", type=_positive(1), default=None,
+                   help="grasp planner candidates per plan (overrides the preset)")
+    p.add_argument("--views", type=_positive(2), default=VIEWS, help="views per sequence")
+    p.add_argument("--workers", type=_positive(1), default=None,
+                   help="worker processes (default: the CPUs this process may use)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--weights", type=Path, default=None, metavar="DIR",
+                   help="folder of <model>.pt checkpoints (default: completion/weights/)")
+    p.add_argument("--out", type=Path, default=Path("evaluation"))
+    p.add_argument("--no-figures", action="store_true")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    return p
+
+
+def settings_from_args(args: argparse.Namespace, parser: argparse.ArgumentParser) -> Settings:
+    from completion.model import WEIGHTS_DIR
+
+    preset = PRESETS[args.preset]
+    weights = args.weights if args.weights is not None else WEIGHTS_DIR
+    paths = []
+    for name in args.models:
+        if name == FUSION:
+            continue
+        path = Path(weights) / f"{name}.pt"
+        if not path.is_file():
+            train = f"python -m completion.train --model {name} --out {path}"
+            if name in ("mvp3", "mvp6"):
+                train = (f"python -m completion.train --model {name} --views {name[-1]} "
+                         f"--out {path}")
+            parser.exit(2, f"{parser.prog}: error: missing weights for model {name!r}: {path} "
+                           f"does not exist. Train them with `{train}` (see "
+                           "completion/weights/README.md), pass --weights DIR, or leave the "
+                           f"model out with --models.\n")
+        paths.append((name, str(path)))
+    objects: tuple[str, ...] = ()
+    if args.objects is not None:
+        try:
+            objects = tuple(objects_in_folder(args.objects))
+        except ValueError as exc:
+            parser.error(str(exc))
+    workers = args.workers
+    if workers is None:
+        workers = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (
+            os.cpu_count() or 1)
+    count = args.count if args.count is not None else preset.count
+    return Settings(
+        rows=tuple(args.models), model_paths=tuple(paths), conditions=tuple(args.conditions),
+        count=count,
+        grasp_count=min(count, args.grasp_count if args.grasp_count is not None
+                        else preset.grasp_count),
+        named=args.named if args.named is not None else preset.named,
+        objects=objects, views=args.views, seed=args.seed,
+        candidates=args.candidates if args.candidates is not None else preset.candidates,
+        workers=workers, examples=not args.no_figures,
+    )
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    settings = settings_from_args(args, parser)
+    results = evaluate(settings, out=args.out, progress=not args.quiet)
+    print(markdown_report(results))
+    print(f"wrote {args.out / 'results.json'}, {args.out / 'results.md'} and figures")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
+
+
+__all__ = [
+    "Evaluator", "Job", "Settings", "PRESETS", "ROWS", "MODEL_NAMES", "FUSION", "aggregate",
+    "build_results", "evaluate", "make_jobs", "markdown_report", "registered_fusion", "run_jobs",
+]

@@ -1,0 +1,73 @@
+"""What the routes depend on: the running service's parts, and the bearer-token check."""
+
+from __future__ import annotations
+
+import hmac
+from collections.abc import Callable
+from dataclasses import dataclass
+from functools import partial
+from typing import Annotated, TypeVar
+
+import anyio.to_thread
+from anyio import CapacityLimiter
+from fastapi import Depends, HTTPException, Request, status
+from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
+
+from service.pipeline import Pipeline
+from service.sessions import SessionLocks
+from service.settings import Settings
+
+T = TypeVar("T")
+
+
+@dataclass
+class Services:
+    """Everything the lifespan builds: settings, the pipeline and the thread limits."""
+
+    settings: Settings
+    pipeline: Pipeline
+    inference: CapacityLimiter  # model steps and completions running at once
+    planning: CapacityLimiter  # grasp plans running at once
+    locks: SessionLocks  # POST /views of one session, one after the other
+
+    async def infer(self, fn: Callable[..., T], *args, **kwargs) -> T:
+        """Run blocking model work in a worker thread, at most ``inference_workers`` at once."""
+        return await anyio.to_thread.run_sync(partial(fn, *args, **kwargs), limiter=self.inference)
+
+    async def plan(self, fn: Callable[..., T], *args, **kwargs) -> T:
+        """Run a grasp plan in a worker thread, at most ``planning_workers`` at once."""
+        return await anyio.to_thread.run_sync(partial(fn, *args, **kwargs), limiter=self.planning)
+
+
+def get_services(request: Request) -> Services:
+    return request.app.state.services
+
+
+ServicesDep = Annotated[Services, Depends(get_services)]
+
+_bearer = HTTPBearer(auto_error=False, description="needed when GRASP_TOKEN is set")
+
+
+def require_token(
+    services: ServicesDep,
+    credentials: Annotated[HTTPAuthorizationCredentials | None, Depends(_bearer)],
+) -> None:
+    """401 unless the request carries ``Authorization: Bearer <GRASP_TOKEN>`` (when one is set)."""
+    token = services.settings.token
+    if token is None:
+        return
+    challenge = {"WWW-Authenticate": "Bearer"}
+    if credentials is None:
+        raise HTTPException(
+            status.HTTP_401_UNAUTHORIZED,
+            "missing bearer token: send the header 'Authorization: Bearer <token>'",
+            headers=challenge,
+        )
+    if not hmac.compare_digest(
+        credentials.credentials.encode(), token.get_secret_value().encode()
+    ):
+        raise HTTPException(
+            status.HTTP_401_UNAUTHORIZED,
+            "wrong bearer token: send the token the server was started with (GRASP_TOKEN)",
+            headers=challenge,
+        )

@@ -1,0 +1,216 @@
+"""Turn a ``POST /views`` body into the arrays ``CompletionStream.add_view`` takes.
+
+Everything a client can get wrong is checked here and raised as :class:`InputError`, which the
+app answers with 422 and a message that says what was expected. Nothing here touches a session,
+so a rejected view changes nothing.
+"""
+
+from __future__ import annotations
+
+import base64
+import binascii
+import io
+from dataclasses import dataclass
+
+import numpy as np
+
+from completion.grid import GRID_SIZE, Intrinsics, VoxelGrid
+from service.schemas import DepthIn, GridIn, ViewIn
+
+#: Largest |coordinate| (metres) accepted in points, depth and transforms: far beyond any depth
+#: camera, small enough that fitting a grid cannot overflow.
+MAX_COORDINATE_M = 1000.0
+#: Tolerance of the rigidity check on camera poses (orthonormal rotation).
+RIGID_TOL = 1e-3
+
+
+class InputError(ValueError):
+    """Bad client input; ``loc`` names the field as FastAPI does, e.g. ("body", "depth", "data")."""
+
+    def __init__(self, loc: tuple[str | int, ...], message: str) -> None:
+        super().__init__(message)
+        self.loc = loc
+        self.message = message
+
+
+@dataclass(frozen=True)
+class DecodedView:
+    """Exactly one of depth (with intrinsics, optional mask), points or grid; arrays are numpy."""
+
+    depth: np.ndarray | None = None  # (H, W) float64 metres, ≤ 0 or non-finite = no return
+    intrinsics: Intrinsics | None = None
+    mask: np.ndarray | None = None  # (H, W) bool
+    points: np.ndarray | None = None  # (n, 3) float64
+    grid: VoxelGrid | None = None
+    camera_to_world: np.ndarray | None = None  # (4, 4) float64
+
+    def add_view_kwargs(self) -> dict:
+        """Keyword arguments for :meth:`completion.stream.CompletionStream.add_view`."""
+        return {
+            "depth": self.depth,
+            "intrinsics": self.intrinsics,
+            "mask": self.mask,
+            "points": self.points,
+            "grid": self.grid,
+            "camera_to_world": self.camera_to_world,
+        }
+
+
+def decode_view(view: ViewIn, *, max_image_pixels: int, max_points: int) -> DecodedView:
+    """Decode and check one view; raises :class:`InputError`."""
+    pose = None if view.camera_pose is None else _camera_pose(view.camera_pose)
+    if view.points is not None:
+        return DecodedView(points=_points(view.points, max_points), camera_to_world=pose)
+    if view.grid is not None:
+        return DecodedView(grid=_grid(view.grid), camera_to_world=pose)
+    assert view.depth is not None and view.intrinsics is not None  # ViewIn's own check
+    depth = _depth(view.depth, max_image_pixels)
+    k = view.intrinsics
+    try:
+        intrinsics = Intrinsics(k.fx, k.fy, k.cx, k.cy, width=depth.shape[1], height=depth.shape[0])
+    except ValueError as exc:
+        raise InputError(("body", "intrinsics"), str(exc)) from exc
+    mask = None if view.mask is None else _mask(view.mask, depth.shape)
+    return DecodedView(depth=depth, intrinsics=intrinsics, mask=mask, camera_to_world=pose)
+
+
+def _base64(text: str, loc: tuple[str, ...]) -> bytes:
+    try:
+        return base64.b64decode(text, validate=True)
+    except (binascii.Error, ValueError) as exc:
+        raise InputError(loc, f"{'.'.join(loc[1:])} must be standard base64 ({exc})") from exc
+
+
+def _points(points: list[list[float]], max_points: int) -> np.ndarray:
+    loc = ("body", "points")
+    if len(points) > max_points:
+        raise InputError(loc, f"at most {max_points} points per view, got {len(points)}")
+    pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    far = np.flatnonzero(np.abs(pts).max(axis=1, initial=0.0) > MAX_COORDINATE_M)
+    if len(far):
+        raise InputError(
+            loc, f"point coordinates must lie within ±{MAX_COORDINATE_M:g} m; "
+            f"point {far[0]} is {pts[far[0]].tolist()}"
+        )
+    behind = np.flatnonzero(pts[:, 2] <= 0)
+    if len(behind):
+        raise InputError(
+            loc, "points must lie in front of the camera (z > 0 m, camera frame); "
+            f"point {behind[0]} has z = {pts[behind[0], 2]:g}"
+        )
+    return pts
+
+
+def _image_size_ok(width: int, height: int, max_pixels: int, loc: tuple[str, ...]) -> None:
+    if width * height > max_pixels:
+        raise InputError(
+            loc, f"image is {width}×{height} = {width * height} pixels; "
+            f"the limit is {max_pixels} pixels"
+        )
+
+
+def _png(raw: bytes, loc: tuple[str, ...], modes: tuple[str, ...], expected: str):
+    """A decoded PNG as an array; checks the format and mode before decoding the pixels."""
+    from PIL import Image
+
+    try:
+        image = Image.open(io.BytesIO(raw), formats=["PNG"])
+    except (OSError, SyntaxError, ValueError, Image.DecompressionBombError) as exc:
+        raise InputError(loc, f"{'.'.join(loc[1:])} is not a PNG image ({exc})") from exc
+    if image.mode not in modes:
+        raise InputError(loc, f"{'.'.join(loc[1:])} must be {expected}, got PNG mode {image.mode}")
+    return image
+
+
+def _pixels(image, loc: tuple[str, ...]) -> np.ndarray:
+    from PIL import Image
+
+    try:
+        return np.asarray(image)
+    except (OSError, SyntaxError, ValueError, Image.DecompressionBombError) as exc:
+        raise InputError(loc, f"{'.'.join(loc[1:])} could not be decoded ({exc})") from exc
+
+
+def _depth(depth: DepthIn, max_pixels: int) -> np.ndarray:
+    loc = ("body", "depth", "data")
+    w, h = depth.width, depth.height
+    _image_size_ok(w, h, max_pixels, ("body", "depth"))
+    raw = _base64(depth.data, loc)
+    if depth.encoding == "f32_m":
+        if len(raw) != 4 * w * h:
+            raise InputError(
+                loc, f"f32_m depth of {w}×{h} needs width × height × 4 = {4 * w * h} bytes, "
+                f"got {len(raw)}"
+            )
+        values = np.frombuffer(raw, dtype="<f4").reshape(h, w).astype(np.float64)
+        finite = values[np.isfinite(values)]
+        if finite.size and finite.min() < 0:
+            raise InputError(
+                loc, "depth must be ≥ 0 m (0, NaN or ±inf mark pixels without a return); "
+                f"found {finite.min():g}"
+            )
+        if finite.size and finite.max() > MAX_COORDINATE_M:
+            raise InputError(
+                loc, f"depth must be at most {MAX_COORDINATE_M:g} m; found {finite.max():g}"
+            )
+        return values
+    image = _png(raw, loc, ("I;16", "I;16B", "I;16L", "I"), "a 16-bit single-channel PNG (mm)")
+    if image.size != (w, h):
+        raise InputError(
+            loc, f"depth PNG is {image.size[0]}×{image.size[1]} but width × height say {w}×{h}"
+        )
+    millimetres = _pixels(image, loc).astype(np.float64)
+    if millimetres.min(initial=0) < 0 or millimetres.max(initial=0) > 65535:
+        raise InputError(loc, "depth PNG values must be 0…65535 mm")
+    return millimetres / 1000.0
+
+
+def _mask(text: str, shape: tuple[int, int]) -> np.ndarray:
+    loc = ("body", "mask")
+    image = _png(_base64(text, loc), loc, ("L", "1", "P"), "an 8-bit single-channel PNG")
+    h, w = shape
+    if image.size != (w, h):
+        raise InputError(
+            loc, f"mask is {image.size[0]}×{image.size[1]} but the depth image is {w}×{h}"
+        )
+    return _pixels(image, loc) != 0
+
+
+def _matrix(rows: list[list[float]], loc: tuple[str, ...], what: str) -> np.ndarray:
+    m = np.asarray(rows, dtype=np.float64)
+    if np.abs(m).max() > MAX_COORDINATE_M:
+        raise InputError(loc, f"{what} entries must lie within ±{MAX_COORDINATE_M:g}")
+    if not np.allclose(m[3], [0.0, 0.0, 0.0, 1.0]):
+        raise InputError(loc, f"{what} must have the last row [0, 0, 0, 1], got {m[3].tolist()}")
+    return m
+
+
+def _camera_pose(rows: list[list[float]]) -> np.ndarray:
+    loc = ("body", "camera_pose")
+    m = _matrix(rows, loc, "camera_pose")
+    r = m[:3, :3]
+    if not np.allclose(r @ r.T, np.eye(3), atol=RIGID_TOL) or np.linalg.det(r) < 0:
+        raise InputError(
+            loc, "camera_pose must be a rigid camera→world transform "
+            "(orthonormal rotation with determinant +1, metres)"
+        )
+    return m
+
+
+def _grid(grid: GridIn) -> VoxelGrid:
+    raw = _base64(grid.data, ("body", "grid", "data"))
+    n = GRID_SIZE**3 // 8
+    if len(raw) != n:
+        raise InputError(
+            ("body", "grid", "data"),
+            f"grid.data must hold {n} bytes (40³ bits packed with numpy.packbits), got {len(raw)}",
+        )
+    loc = ("body", "grid", "grid_to_camera")
+    t = _matrix(grid.grid_to_camera, loc, "grid_to_camera")
+    det = float(np.linalg.det(t[:3, :3]))
+    if not det > 1e-15:
+        raise InputError(
+            loc, "grid_to_camera must map voxel indices to metres with a positive scale "
+            f"(determinant of the 3×3 part > 0), got determinant {det:g}"
+        )
+    return VoxelGrid(VoxelGrid.unpack(raw), t)

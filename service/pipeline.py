@@ -1,0 +1,149 @@
+"""The chain behind the routes, as plain blocking functions (the app runs them in worker threads).
+
+``POST /views``: stored state → ``CompletionStream`` step → stored state.
+``GET /grasp``: stored state → completion → mesh (marching cubes) → BarrettHand grasp plan.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import time
+import uuid
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+import trimesh
+
+from completion.grid import VoxelGrid
+from completion.mesh import grid_to_mesh
+from completion.stream import Completion, CompletionStream, ViewResult
+from service.inputs import DecodedView, InputError
+from service.sessions import ConcurrentUpdate, SessionRecord, SessionStore
+
+#: How often a view is re-applied when another process changed the session meanwhile.
+UPDATE_ATTEMPTS = 5
+
+
+class ModelMismatch(RuntimeError):
+    """A stored session was made by a different model than the one this server runs."""
+
+
+def model_fingerprint(model: torch.nn.Module) -> str:
+    """A short hash of the weights: a stored state only fits the model that made it."""
+    digest = hashlib.sha256()
+    for name, tensor in sorted(model.state_dict().items()):
+        digest.update(name.encode())
+        digest.update(tensor.detach().cpu().contiguous().numpy().tobytes())
+    return digest.hexdigest()[:16]
+
+
+@dataclass(frozen=True)
+class Snapshot:
+    """A session's completion at one moment, with the camera pose of its latest view."""
+
+    record: SessionRecord
+    completion: Completion
+    camera_to_world: np.ndarray | None  # (4, 4) of the latest view, when given
+
+
+@dataclass(frozen=True)
+class PlannedGrasps:
+    snapshot: Snapshot
+    results: list  # grasp.planner.GraspResult, best first
+    timing_ms: dict[str, float]
+
+
+class Pipeline:
+    """One loaded model and the session store; every method is blocking and thread-safe."""
+
+    def __init__(self, model: torch.nn.Module, store: SessionStore, *, model_name: str) -> None:
+        self.model = model.eval()
+        self.store = store
+        self.model_name = model_name
+        self.model_id = model_fingerprint(model)
+
+    # ---------------------------------------------------------------------------- views
+    def add_view(self, session_id: str | None, view: DecodedView) -> tuple[str, ViewResult]:
+        """Apply one view (to a new session when ``session_id`` is None) and store the state."""
+        if session_id is None:
+            self.store.ensure_room()
+            stream = CompletionStream(self.model)
+            result = _step(stream, view)
+            session_id = uuid.uuid4().hex
+            self.store.create(
+                session_id, model=self.model_id, state=stream.to_bytes(), views=stream.views,
+                object_seen=stream.grid_to_camera is not None,
+            )
+            return session_id, result
+        for _ in range(UPDATE_ATTEMPTS):
+            record = self.store.get(session_id)
+            stream = self._stream(record)
+            result = _step(stream, view)
+            try:
+                self.store.update(
+                    record, state=stream.to_bytes(), views=stream.views,
+                    object_seen=stream.grid_to_camera is not None,
+                )
+            except ConcurrentUpdate:
+                continue  # another process applied a view first: apply ours on top of it
+            return session_id, result
+        raise ConcurrentUpdate(
+            f"session {session_id!r} kept changing while this view was applied; send it again"
+        )
+
+    def _stream(self, record: SessionRecord) -> CompletionStream:
+        if record.model != self.model_id:
+            raise ModelMismatch(
+                f"session {record.id!r} was made by another model (weights {record.model}); this "
+                f"server runs {self.model_name!r} (weights {self.model_id}): start a new session"
+            )
+        return CompletionStream.from_bytes(self.model, record.state)
+
+    # ---------------------------------------------------------------------------- outputs
+    def snapshot(self, session_id: str) -> Snapshot:
+        """The latest completion; raises NoObjectError before any view with object points."""
+        record = self.store.get(session_id)
+        stream = self._stream(record)
+        return Snapshot(record, stream.completion(), stream.camera_to_world)
+
+    def occupancy(self, session_id: str) -> tuple[Snapshot, VoxelGrid]:
+        snap = self.snapshot(session_id)
+        return snap, snap.completion.voxel_grid()
+
+    def mesh(self, session_id: str) -> trimesh.Trimesh:
+        """Mesh of the latest completion (camera frame); raises EmptyMeshError if empty."""
+        c = self.snapshot(session_id).completion
+        return grid_to_mesh(c.probabilities, c.grid_to_camera, threshold=c.threshold)
+
+    def grasps(
+        self, session_id: str, *, top_k: int, n_candidates: int, seed: int
+    ) -> PlannedGrasps:
+        """Complete, mesh and plan; the timing of each stage in milliseconds."""
+        from grasp.planner import plan
+
+        t0 = time.perf_counter()
+        record = self.store.get(session_id)
+        stream = self._stream(record)
+        t1 = time.perf_counter()
+        completion = stream.completion()
+        t2 = time.perf_counter()
+        mesh = grid_to_mesh(
+            completion.probabilities, completion.grid_to_camera, threshold=completion.threshold
+        )
+        t3 = time.perf_counter()
+        results = plan(mesh, n_candidates=n_candidates, seed=seed, top_k=top_k)
+        t4 = time.perf_counter()
+        timing = {
+            "load": t1 - t0, "completion": t2 - t1, "mesh": t3 - t2, "planning": t4 - t3,
+            "total": t4 - t0,
+        }
+        snapshot = Snapshot(record, completion, stream.camera_to_world)
+        return PlannedGrasps(snapshot, results, {k: round(v * 1e3, 3) for k, v in timing.items()})
+
+
+def _step(stream: CompletionStream, view: DecodedView) -> ViewResult:
+    try:
+        return stream.add_view(**view.add_view_kwargs())
+    except ValueError as exc:  # the stream's own checks on the decoded arrays
+        raise InputError(("body",), str(exc)) from exc

@@ -1,0 +1,162 @@
+"""Request and response bodies of the HTTP API (JSON; arrays as nested lists, binary as base64).
+
+Frames (DESIGN §3): points, poses and grids are in the camera frame of the view they came with
+(OpenCV optical: x right, y down, z forward, metres); ``camera_pose`` is camera→world.
+"""
+
+from __future__ import annotations
+
+from datetime import datetime
+from typing import Annotated, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, model_validator
+
+FiniteFloat = Annotated[float, Field(allow_inf_nan=False)]
+Vector3 = Annotated[list[FiniteFloat], Field(min_length=3, max_length=3)]
+Row4 = Annotated[list[FiniteFloat], Field(min_length=4, max_length=4)]
+Matrix4 = Annotated[list[Row4], Field(min_length=4, max_length=4, description="4×4, row-major")]
+SessionId = Annotated[str, Field(min_length=1, max_length=128, description="from POST /views")]
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+
+# ------------------------------------------------------------------------------- POST /views
+
+
+class IntrinsicsIn(_Strict):
+    """Pinhole intrinsics in pixels (pixel (u, v) has its centre at integer (u, v))."""
+
+    fx: FiniteFloat = Field(gt=0)
+    fy: FiniteFloat = Field(gt=0)
+    cx: FiniteFloat
+    cy: FiniteFloat
+
+
+class DepthIn(_Strict):
+    """A depth image: metric depth along the camera z axis, 0 (or NaN/±inf for f32_m) = no return.
+
+    ``png16_mm``: base64 of a 16-bit single-channel PNG in millimetres (RealSense, ROS 16UC1).
+    ``f32_m``: base64 of width × height little-endian float32 in metres, row-major (ROS 32FC1).
+    """
+
+    encoding: Literal["png16_mm", "f32_m"]
+    width: int = Field(gt=0, le=65535)
+    height: int = Field(gt=0, le=65535)
+    data: str = Field(description="base64")
+
+
+class GridIn(_Strict):
+    """A ready voxel grid: 40³ occupancy bits packed in C order (numpy.packbits, 8000 bytes)."""
+
+    data: str = Field(description="base64 of the 8000 packed bytes")
+    grid_to_camera: Matrix4 = Field(description="voxel index (i, j, k) → camera-frame metres")
+
+
+class ViewIn(_Strict):
+    """One view: exactly one of ``points``, ``depth`` (with ``intrinsics``) or ``grid``."""
+
+    session_id: SessionId | None = Field(None, description="absent: a new session is created")
+    points: list[Vector3] | None = Field(
+        None, description="the object's observed points [[x, y, z], …], camera frame, metres"
+    )
+    depth: DepthIn | None = None
+    intrinsics: IntrinsicsIn | None = Field(None, description="with depth, and only with depth")
+    mask: str | None = Field(
+        None,
+        description="with depth only: base64 8-bit PNG of the depth image's size, "
+        "non-zero = object pixel (absent: every valid pixel is the object)",
+    )
+    grid: GridIn | None = None
+    camera_pose: Matrix4 | None = Field(None, description="camera→world, rigid")
+
+    @model_validator(mode="after")
+    def _one_input(self) -> ViewIn:
+        given = [name for name in ("points", "depth", "grid") if getattr(self, name) is not None]
+        if len(given) != 1:
+            raise ValueError(
+                "give exactly one of points, depth (with intrinsics) or grid; "
+                f"got {' and '.join(given) if given else 'none'}"
+            )
+        if self.depth is not None and self.intrinsics is None:
+            raise ValueError("depth needs intrinsics {fx, fy, cx, cy}")
+        if self.depth is None and (self.intrinsics is not None or self.mask is not None):
+            raise ValueError("intrinsics and mask go with depth only")
+        return self
+
+
+class ViewOut(BaseModel):
+    session_id: str
+    view_index: int = Field(description="0-based index of this view in the session")
+    observed_voxels: int = Field(description="occupied voxels of this view's input grid")
+    occupied_voxels: int = Field(description="voxels of the completion at the threshold")
+
+
+# ------------------------------------------------------------------------------- GET /grasp
+
+
+class ContactOut(BaseModel):
+    link: str
+    point: list[float] = Field(description="camera frame, metres")
+    normal: list[float] = Field(description="unit, camera frame")
+
+
+class GraspOut(BaseModel):
+    palm_pose: list[list[float]] = Field(description="4×4 palm→camera (latest view)")
+    palm_pose_world: list[list[float]] | None = Field(
+        description="4×4 palm→world, when the latest view came with a camera_pose"
+    )
+    joints_deg: dict[str, float] = Field(
+        description="the 8 joints by name (f1_spread, f1_prox, f1_dist, f2_spread, f2_prox, "
+        "f2_dist, f3_prox, f3_dist), degrees"
+    )
+    dofs_deg: list[float] = Field(description="spread, f1, f2, f3 DOFs, degrees")
+    epsilon: float
+    volume: float
+    contacts: list[ContactOut]
+
+
+class GraspsOut(BaseModel):
+    session_id: str
+    views: int
+    grasps: list[GraspOut] = Field(description="best first; empty when no candidate held")
+    reason: str | None = Field(
+        None, description="why no grasp was found, when grasps is empty"
+    )
+    timing_ms: dict[str, float] = Field(description="load, completion, mesh, planning, total")
+
+
+# ------------------------------------------------------------------------------- sessions
+
+
+class SessionOut(BaseModel):
+    session_id: str
+    views: int
+    object_seen: bool = Field(description="whether any view showed object points")
+    created: datetime
+    updated: datetime
+    expires: datetime = Field(description="when the session is deleted unless a view arrives")
+
+
+class OccupancyOut(BaseModel):
+    session_id: str
+    views: int
+    shape: list[int]
+    encoding: Literal["packbits"] = Field(
+        "packbits", description="numpy.packbits of the bool grid in C order, then base64"
+    )
+    data: str
+    threshold: float
+    occupied_voxels: int
+    grid_to_camera: list[list[float]] = Field(description="4×4, latest view's camera frame")
+
+
+class HealthOut(BaseModel):
+    status: Literal["ok"] = "ok"
+    model: str
+    sessions: int
+
+
+class ErrorOut(BaseModel):
+    detail: str | list[dict] = Field(description="what was wrong and what was expected")

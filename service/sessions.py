@@ -1,0 +1,219 @@
+"""The session store: one SQLite row per session, written on every view (DESIGN §9).
+
+A row holds the whole ``CompletionStream`` state (model memory, current grid, latest logits,
+counters: a few hundred kB, constant in the number of views), so a server killed at any moment
+and restarted on the same file continues every stream exactly. SQLite runs in WAL mode; a
+committed view survives a killed process.
+
+Writes are compare-and-swap on the view count, so two writers (threads or processes) can never
+both apply their view on top of the same state; within one process :class:`SessionLocks` queues
+the ``POST /views`` of a session so that none has to retry.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import sqlite3
+import time
+from collections.abc import AsyncIterator, Callable
+from contextlib import asynccontextmanager, closing
+from dataclasses import dataclass
+from pathlib import Path
+
+log = logging.getLogger(__name__)
+
+_SCHEMA = """
+CREATE TABLE IF NOT EXISTS sessions (
+    id TEXT PRIMARY KEY,
+    model TEXT NOT NULL,
+    created REAL NOT NULL,
+    updated REAL NOT NULL,
+    views INTEGER NOT NULL,
+    object_seen INTEGER NOT NULL,
+    state BLOB NOT NULL
+);
+CREATE INDEX IF NOT EXISTS sessions_updated ON sessions (updated);
+"""
+
+
+class SessionNotFound(LookupError):
+    """No such session (never made, deleted, or expired)."""
+
+
+class StoreFull(RuntimeError):
+    """The store holds ``max_sessions`` live sessions."""
+
+
+class ConcurrentUpdate(RuntimeError):
+    """Another writer applied a view first; reload and try again."""
+
+
+@dataclass(frozen=True)
+class SessionRecord:
+    id: str
+    model: str  # fingerprint of the model that made the state
+    created: float  # unix seconds
+    updated: float
+    views: int
+    object_seen: bool
+    state: bytes  # CompletionStream.to_bytes()
+
+
+class SessionStore:
+    """Sessions in one SQLite file; safe to use from many threads (a connection per call)."""
+
+    def __init__(
+        self,
+        path: str | Path,
+        *,
+        max_sessions: int,
+        ttl_s: float,
+        clock: Callable[[], float] = time.time,
+    ) -> None:
+        self.path = Path(path)
+        self.max_sessions = max_sessions
+        self.ttl_s = ttl_s
+        self.clock = clock
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        with closing(self._connect()) as con:
+            con.execute("PRAGMA journal_mode=WAL")
+            con.executescript(_SCHEMA)
+
+    def _connect(self) -> sqlite3.Connection:
+        con = sqlite3.connect(self.path, timeout=30.0, isolation_level=None)
+        con.execute("PRAGMA synchronous=NORMAL")  # WAL: durable against a killed process
+        return con
+
+    def not_found_message(self, session_id: str) -> str:
+        return (
+            f"unknown session {session_id!r}: it does not exist, was deleted, or expired after "
+            f"{self.ttl_s:g} s without a view; POST /views without session_id starts a new one"
+        )
+
+    # ---------------------------------------------------------------------------- reads
+    def get(self, session_id: str) -> SessionRecord:
+        """The live session; raises SessionNotFound (an expired one is deleted on the way)."""
+        with closing(self._connect()) as con:
+            row = con.execute(
+                "SELECT id, model, created, updated, views, object_seen, state "
+                "FROM sessions WHERE id = ?",
+                (session_id,),
+            ).fetchone()
+            if row is None:
+                raise SessionNotFound(self.not_found_message(session_id))
+            record = SessionRecord(*row[:5], bool(row[5]), bytes(row[6]))
+            if self._expired(record.updated):
+                con.execute(
+                    "DELETE FROM sessions WHERE id = ? AND updated = ?", (session_id, record.updated)
+                )
+                raise SessionNotFound(self.not_found_message(session_id))
+        return record
+
+    def count(self) -> int:
+        with closing(self._connect()) as con:
+            (n,) = con.execute(
+                "SELECT COUNT(*) FROM sessions WHERE updated >= ?", (self.clock() - self.ttl_s,)
+            ).fetchone()
+        return int(n)
+
+    def ensure_room(self) -> None:
+        """Raise StoreFull when no new session fits (a cheap check before doing any work)."""
+        if self.count() >= self.max_sessions:
+            raise self._full()
+
+    def _full(self) -> StoreFull:
+        return StoreFull(
+            f"the session store is full ({self.max_sessions} sessions): DELETE finished sessions, "
+            f"or retry once idle ones expire ({self.ttl_s:g} s after their last view)"
+        )
+
+    def _expired(self, updated: float) -> bool:
+        return updated < self.clock() - self.ttl_s
+
+    # ---------------------------------------------------------------------------- writes
+    def create(
+        self, session_id: str, *, model: str, state: bytes, views: int, object_seen: bool
+    ) -> SessionRecord:
+        """Insert a new session; raises StoreFull when ``max_sessions`` are live."""
+        now = self.clock()
+        with closing(self._connect()) as con:
+            con.execute("BEGIN IMMEDIATE")
+            try:
+                con.execute("DELETE FROM sessions WHERE updated < ?", (now - self.ttl_s,))
+                (n,) = con.execute("SELECT COUNT(*) FROM sessions").fetchone()
+                if n >= self.max_sessions:
+                    raise self._full()
+                con.execute(
+                    "INSERT INTO sessions (id, model, created, updated, views, object_seen, state)"
+                    " VALUES (?, ?, ?, ?, ?, ?, ?)",
+                    (session_id, model, now, now, views, int(object_seen), state),
+                )
+                con.execute("COMMIT")
+            except BaseException:
+                con.execute("ROLLBACK")
+                raise
+        return SessionRecord(session_id, model, now, now, views, object_seen, state)
+
+    def update(
+        self, record: SessionRecord, *, state: bytes, views: int, object_seen: bool
+    ) -> SessionRecord:
+        """Replace the state of ``record`` if nobody changed it since it was read.
+
+        Raises ConcurrentUpdate when another writer got there first, SessionNotFound when the
+        session was deleted meanwhile.
+        """
+        now = self.clock()
+        with closing(self._connect()) as con:
+            cursor = con.execute(
+                "UPDATE sessions SET state = ?, views = ?, object_seen = ?, updated = ? "
+                "WHERE id = ? AND views = ?",
+                (state, views, int(object_seen), now, record.id, record.views),
+            )
+            if cursor.rowcount == 0:
+                exists = con.execute("SELECT 1 FROM sessions WHERE id = ?", (record.id,)).fetchone()
+                if exists is None:
+                    raise SessionNotFound(self.not_found_message(record.id))
+                raise ConcurrentUpdate(f"session {record.id!r} changed while a view was applied")
+        return SessionRecord(record.id, record.model, record.created, now, views, object_seen, state)
+
+    def delete(self, session_id: str) -> bool:
+        """Delete a session; False when there was none."""
+        with closing(self._connect()) as con:
+            cursor = con.execute("DELETE FROM sessions WHERE id = ?", (session_id,))
+        return cursor.rowcount > 0
+
+    def purge_expired(self) -> int:
+        """Delete every expired session; returns how many."""
+        with closing(self._connect()) as con:
+            cursor = con.execute(
+                "DELETE FROM sessions WHERE updated < ?", (self.clock() - self.ttl_s,)
+            )
+        if cursor.rowcount:
+            log.info("purged %d expired sessions", cursor.rowcount)
+        return cursor.rowcount
+
+
+class SessionLocks:
+    """One asyncio lock per session id, dropped when nobody holds or waits for it."""
+
+    def __init__(self) -> None:
+        self._locks: dict[str, tuple[asyncio.Lock, int]] = {}
+
+    @asynccontextmanager
+    async def hold(self, session_id: str) -> AsyncIterator[None]:
+        lock, users = self._locks.get(session_id, (None, 0))
+        lock = lock or asyncio.Lock()
+        self._locks[session_id] = (lock, users + 1)
+        try:
+            async with lock:
+                yield
+        finally:
+            lock, users = self._locks[session_id]
+            if users == 1:
+                del self._locks[session_id]
+            else:
+                self._locks[session_id] = (lock, users - 1)
+
+    def __len__(self) -> int:
+        return len(self._locks)

@@ -1,0 +1,45 @@
+"""Service settings: one pydantic-settings class, read from ``GRASP_*`` environment variables."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from pydantic import Field, SecretStr
+from pydantic_settings import BaseSettings, SettingsConfigDict
+
+
+class Settings(BaseSettings):
+    """Every knob of the service; ``GRASP_<NAME>`` sets ``<name>`` (e.g. ``GRASP_PORT=8080``)."""
+
+    model_config = SettingsConfigDict(env_prefix="GRASP_", frozen=True)
+
+    host: str = Field("127.0.0.1", description="interface uvicorn binds to")
+    port: int = Field(8000, ge=0, le=65535, description="TCP port (0 = any free port)")
+    model: str = Field(
+        "mvp", description="shipped weights name (completion/weights/<name>.pt) or checkpoint path"
+    )
+    store_path: Path = Field(
+        Path("grasp_store.sqlite"), description="SQLite file holding the sessions"
+    )
+    max_sessions: int = Field(1000, ge=1, description="sessions kept at most; more get 503")
+    session_ttl_s: float = Field(
+        3600.0, gt=0, description="a session idle for longer than this is deleted"
+    )
+    max_image_pixels: int = Field(
+        2048 * 2048, ge=1, description="largest depth image (width × height) accepted"
+    )
+    max_points: int = Field(500_000, ge=1, description="most points accepted in one view")
+    max_body_bytes: int = Field(
+        32 * 1024 * 1024, ge=1024, description="largest request body; larger ones get 413"
+    )
+    token: SecretStr | None = Field(
+        None, description="if set, every route but /healthz needs 'Authorization: Bearer <token>'"
+    )
+    n_candidates: int = Field(64, ge=1, description="default grasp candidates per GET /grasp")
+    max_candidates: int = Field(512, ge=1, description="largest n_candidates a client may ask")
+    plan_seed: int = Field(0, description="seed of the grasp planner (same state, same grasp)")
+    torch_threads: int = Field(1, ge=1, description="torch intra-op threads (torch.set_num_threads)")
+    inference_workers: int = Field(
+        2, ge=1, description="model steps (POST /views, completions) running at once"
+    )
+    planning_workers: int = Field(1, ge=1, description="grasp plans running at once")

@@ -1,0 +1,79 @@
+import numpy as np
+import pytest
+from scipy import ndimage
+
+from completion.render import Renderer
+from completion.scenes import CONDITIONS, make_sequence
+
+
+@pytest.fixture(scope="module")
+def renderer():
+    with Renderer() as r:
+        yield r
+
+
+@pytest.fixture(scope="module")
+def samples(renderer):
+    return {
+        c: [make_sequence(c, "train", i, 0, renderer=renderer) for i in range(2)]
+        for c in CONDITIONS
+    }
+
+
+def test_inputs_lie_inside_dilated_targets(samples):
+    cube = np.ones((3, 3, 3), bool)  # "dilated by one voxel": the 26-neighbourhood
+    for condition, seqs in samples.items():
+        agree = total = 0
+        for s in seqs:
+            for x, y in zip(s.inputs, s.targets, strict=True):
+                agree += (x & ndimage.binary_dilation(y, cube)).sum()
+                total += x.sum()
+        assert total > 0
+        assert agree / total >= 0.95, condition
+
+
+def test_shapes_and_meta(samples):
+    s = samples["camera_pan"][0]
+    assert s.inputs.shape == s.targets.shape == (12, 40, 40, 40)
+    assert s.grid_to_camera.shape == s.camera_to_world.shape == (12, 4, 4)
+    assert s.meta["condition"] == "camera_pan" and len(s.meta["object_ids"]) == 1
+    assert all(t.sum() > 0 for t in s.targets)
+
+
+def test_hiding_and_reveal(samples):
+    for s in samples["object_hiding"]:
+        assert s.inputs[0].sum() > 0 and s.inputs[-1].sum() == 0
+        assert all(t.sum() > 0 for t in s.targets)  # the target stays the full object
+    for s in samples["object_reveal"]:
+        assert s.inputs[0].sum() == 0 and s.inputs[-1].sum() > 0
+
+
+def test_slide_behind_hides_the_sliding_object(samples):
+    for s in samples["slide_behind"]:
+        sliding = np.array([v[1] for v in s.meta["visible_points"]])
+        assert sliding[4:8].min() < 0.5 * min(sliding[0], sliding[-1])
+        front = np.array([v[0] for v in s.meta["visible_points"]])
+        assert front.min() == front.max() > 0  # fixed camera, stationary front object
+
+
+def test_two_object_pan_has_two_components(samples):
+    for s in samples["two_object_pan"]:
+        _, n = ndimage.label(s.targets[0])
+        assert n >= 2
+        assert len(set(s.meta["object_ids"])) <= 2
+
+
+def test_deterministic_in_seed(renderer):
+    a = make_sequence("two_object_pan", "val", 3, 7, renderer=renderer)
+    b = make_sequence("two_object_pan", "val", 3, 7, renderer=renderer)
+    c = make_sequence("two_object_pan", "val", 3, 8, renderer=renderer)
+    for k in ("inputs", "targets", "grid_to_camera", "camera_to_world"):
+        assert getattr(a, k).tobytes() == getattr(b, k).tobytes()
+    assert a.inputs.tobytes() != c.inputs.tobytes()
+
+
+def test_bad_arguments():
+    with pytest.raises(ValueError, match="condition must be one of"):
+        make_sequence("pan", "train", 0)
+    with pytest.raises(ValueError, match="split must be one of"):
+        make_sequence("camera_pan", "training", 0)
