@@ -615,7 +615,7 @@ def _check_plain(value: Any, path: str) -> None:
     )
 
 
-def save_checkpoint(model: CompletionModel, path: str | os.PathLike[str], **extra: Any) -> None:
+def save_checkpoint(model: CompletionModel, path: str | os.PathLike[str], /, **extra: Any) -> None:
     """Write ``{"format", "version", "config", "grid", "state_dict", **extra}`` to ``path``.
 
     ``extra`` holds plain data only (e.g. epoch, metrics, threshold, optimizer state dict);

@@ -12,6 +12,10 @@ is scored on the validation set (Jaccard per condition over all 12 views, at sev
 the best checkpoint by mean Jaccard at 0.5 is written to ``--out`` (fp16 weights, loaded back to
 fp32) with its figures; ``<run-dir>/last.pt`` holds the full training state for ``--resume``.
 ``--views 3`` / ``--views 6`` train on random windows of 3 / 6 consecutive views (MVP3 / MVP6).
+
+One decision threshold for all models is then chosen on the validation sweeps::
+
+    python -m completion.train select-threshold completion/weights/*.pt
 """
 
 from __future__ import annotations
@@ -210,6 +214,24 @@ def train(args: argparse.Namespace) -> dict:
     return summary
 
 
+def select_threshold(paths: list[Path]) -> float:
+    """Choose one decision threshold for every model: the one with the best validation Jaccard
+    averaged over models and conditions (read from each checkpoint's stored sweep), and write it
+    into every checkpoint (its ``threshold`` entry, which :func:`load_model` applies)."""
+    sweeps = [read_checkpoint(p)["val"] for p in paths]
+    keys = sorted(set.intersection(*(set(s) for s in sweeps)))
+    score = {k: float(np.mean([s[k]["mean"] for s in sweeps])) for k in keys}
+    best = max(keys, key=lambda k: score[k])
+    for p in paths:
+        payload = read_checkpoint(p)
+        payload["threshold"] = float(best)
+        tmp = p.with_name(p.name + ".tmp")
+        torch.save(payload, tmp)
+        tmp.replace(p)
+    print(json.dumps({"threshold": float(best), "mean_val_jaccard": score}), flush=True)
+    return float(best)
+
+
 def _conditions(text: str) -> list[str]:
     names = list(CONDITIONS) if text == "all" else [c for c in text.split(",") if c]
     bad = [c for c in names if c not in CONDITIONS]
@@ -242,6 +264,15 @@ def _overrides(text: str) -> dict:
 
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
+    if argv[:1] == ["select-threshold"]:
+        paths = [Path(a) for a in argv[1:]]
+        missing = [str(a) for a in paths if not a.is_file()]
+        if not paths or missing:
+            print("usage: python -m completion.train select-threshold CKPT [CKPT …] "
+                  f"(checkpoint files; missing: {missing})", file=sys.stderr)
+            return 2
+        select_threshold(paths)
+        return 0
     p = argparse.ArgumentParser(
         prog="python -m completion.train",
         description=__doc__,

@@ -223,7 +223,7 @@ class _Search:
             if use_hull:
                 # a step of d / speed cannot reach the convex hull, hence not the object
                 jump = self.free_distance(poses_at(lo)) / speed
-                use_hull = jump > 0.0  # inside the hull it stays ~0: stop asking
+                use_hull = jump > step  # close to the hull: plain steps from here on
             hi = min(lo + max(step, jump), stop)
             hit = self.colliding(poses_at(hi))
             if not hit:

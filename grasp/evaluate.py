@@ -58,16 +58,28 @@ MODEL_NAMES: tuple[str, ...] = ("single_view", "mvp", "mvt", "lstm", "mvp3", "mv
 FUSION = "registered_fusion"
 ROWS: tuple[str, ...] = (*MODEL_NAMES, FUSION)
 ROW_LABELS = {
-    "single_view": "Single-View", "mvp": "MVP", "mvt": "MVT", "lstm": "LSTM", "mvp3": "MVP3",
-    "mvp6": "MVP6", FUSION: "Registered fusion (ref.)",
+    "single_view": "Single-View",
+    "mvp": "MVP",
+    "mvt": "MVT",
+    "lstm": "LSTM",
+    "mvp3": "MVP3",
+    "mvp6": "MVP6",
+    FUSION: "Registered fusion (ref.)",
 }
 #: Column order of the paper's tables.
 PAPER_ORDER: tuple[str, ...] = (
-    "object_hiding", "object_reveal", "camera_pan", "slide_behind", "two_object_pan",
+    "object_hiding",
+    "object_reveal",
+    "camera_pan",
+    "slide_behind",
+    "two_object_pan",
 )
 CONDITION_LABELS = {
-    "object_hiding": "Object Hiding", "object_reveal": "Object Reveal", "camera_pan": "Camera Pan",
-    "slide_behind": "Slide Behind Other", "two_object_pan": "Two Object Pan",
+    "object_hiding": "Object Hiding",
+    "object_reveal": "Object Reveal",
+    "camera_pan": "Camera Pan",
+    "slide_behind": "Slide Behind Other",
+    "two_object_pan": "Two Object Pan",
 }
 EVAL_SPLITS: tuple[str, ...] = ("train", "test")
 METRICS: tuple[str, ...] = ("jaccard", "fscore_1", "fscore_2", "joint_error_deg")
@@ -183,7 +195,9 @@ class SequenceResult:
 
 #: Sub-voxel offsets (in voxels) at which an observed voxel is carried into another grid, so that
 #: a coarser source grid leaves no holes in a finer destination grid.
-_SUBVOXEL = np.array([[x, y, z] for x in (-0.25, 0.25) for y in (-0.25, 0.25) for z in (-0.25, 0.25)])
+_SUBVOXEL = np.array(
+    [[x, y, z] for x in (-0.25, 0.25) for y in (-0.25, 0.25) for z in (-0.25, 0.25)]
+)
 
 
 def registered_fusion(
@@ -264,7 +278,9 @@ class Evaluator:
         with torch.no_grad():
             for name in self.settings.rows:
                 if name == FUSION:
-                    out[name] = registered_fusion(seq.inputs, seq.grid_to_camera, seq.camera_to_world)
+                    out[name] = registered_fusion(
+                        seq.inputs, seq.grid_to_camera, seq.camera_to_world
+                    )
                 else:
                     out[name] = torch.sigmoid(self.models[name](x))[0].numpy()
         return out
@@ -277,8 +293,13 @@ class Evaluator:
         timings = Timings()
         t0 = time.perf_counter()
         seq = make_sequence(
-            job.condition, job.split, job.index, s.seed, views=s.views,
-            pool=list(job.pool) if job.pool is not None else None, renderer=self.renderer,
+            job.condition,
+            job.split,
+            job.index,
+            s.seed,
+            views=s.views,
+            pool=list(job.pool) if job.pool is not None else None,
+            renderer=self.renderer,
         )
         t1 = time.perf_counter()
         probs = self.probabilities(seq)
@@ -294,7 +315,12 @@ class Evaluator:
                 p, thr = probs[row][v], self.thresholds[row]
                 occ = p >= thr
                 scores = metrics.fscore_grids(
-                    p, seq.targets[v], transform, threshold=thr, count=s.samples, seed=seed,
+                    p,
+                    seq.targets[v],
+                    transform,
+                    threshold=thr,
+                    count=s.samples,
+                    seed=seed,
                     target_sample=truth,
                 )
                 per_view[row]["jaccard"].append(metrics.jaccard(occ, seq.targets[v]))
@@ -303,7 +329,9 @@ class Evaluator:
         t3 = time.perf_counter()
         grasps: dict[str, dict] = {}
         if job.grasp and job.condition in SINGLE_OBJECT_CONDITIONS:
-            truth_mesh = truth_mesh_in_latest_camera(seq)
+            from grasp.sim import CollisionScene
+
+            truth_mesh = CollisionScene(truth_mesh_in_latest_camera(seq))  # built once, reused
             seed = _key_seed(s.seed, job.table, job.condition, job.split, job.index, "grasp")
             for row in s.rows:
                 mesh = metrics.mesh_or_none(
@@ -324,14 +352,10 @@ class Evaluator:
                 "camera_to_world": seq.camera_to_world[-1],
                 "object_to_world": seq.meta["object_to_world"][-1],
                 "rows": {r: np.packbits(probs[r][-1] >= self.thresholds[r]) for r in s.rows},
-                "probabilities": {
-                    r: probs[r][-1].astype(np.float16) for r in s.rows if r in grasps
-                },
+                "probabilities": {r: probs[r][-1] for r in _figure_rows(list(grasps))},
                 "thresholds": dict(self.thresholds),
             }
-        return SequenceResult(
-            job, list(seq.meta["object_ids"]), per_view, grasps, timings, example
-        )
+        return SequenceResult(job, list(seq.meta["object_ids"]), per_view, grasps, timings, example)
 
 
 _WORKER: Evaluator | None = None
@@ -359,21 +383,41 @@ def make_jobs(settings: Settings) -> list[Job]:
     for condition in settings.conditions:
         for split in EVAL_SPLITS:
             for index in range(settings.count):
-                jobs.append(Job(
-                    MAIN_TABLE, condition, split, index,
-                    grasp=index < settings.grasp_count, example=split == "test" and index == 0,
-                ))
+                jobs.append(
+                    Job(
+                        MAIN_TABLE,
+                        condition,
+                        split,
+                        index,
+                        grasp=index < settings.grasp_count,
+                        example=split == "test" and index == 0,
+                    )
+                )
     named = object_ids("test", sources=("named",))[: settings.named]
     for index, object_id in enumerate(named):
-        jobs.append(Job(
-            NAMED_OBJECTS_TABLE, OBJECT_TABLE_CONDITION, "test", index, pool=(object_id,),
-            grasp=True, example=index == 0,
-        ))
+        jobs.append(
+            Job(
+                NAMED_OBJECTS_TABLE,
+                OBJECT_TABLE_CONDITION,
+                "test",
+                index,
+                pool=(object_id,),
+                grasp=settings.grasp_count > 0,
+                example=index == 0,
+            )
+        )
     for index, object_id in enumerate(settings.objects):
-        jobs.append(Job(
-            FOLDER_TABLE, OBJECT_TABLE_CONDITION, "test", index, pool=(object_id,),
-            grasp=True, example=index == 0,
-        ))
+        jobs.append(
+            Job(
+                FOLDER_TABLE,
+                OBJECT_TABLE_CONDITION,
+                "test",
+                index,
+                pool=(object_id,),
+                grasp=settings.grasp_count > 0,
+                example=index == 0,
+            )
+        )
     return jobs
 
 
@@ -403,8 +447,10 @@ def run_jobs(settings: Settings, jobs: list[Job], *, progress: bool = True) -> l
 
             # spawn: torch and pybullet do not survive fork with live threads/clients.
             with ProcessPoolExecutor(
-                settings.workers, mp_context=mp.get_context("spawn"),
-                initializer=_init_worker, initargs=(settings,),
+                settings.workers,
+                mp_context=mp.get_context("spawn"),
+                initializer=_init_worker,
+                initargs=(settings,),
             ) as pool:
                 for result in pool.map(_run_job, jobs, chunksize=1):
                     results.append(result)
@@ -451,15 +497,28 @@ def aggregate(results: list[SequenceResult], settings: Settings, table: str) -> 
                 ok = [g["error_deg"] for g in grasped if g["error_deg"] is not None]
                 applies = c in SINGLE_OBJECT_CONDITIONS
                 tables["joint_error_deg"][row][c][s] = _mean(ok) if applies else None
-                counts[row][c][s] = {"sequences": len(cell), "grasped": len(grasped),
-                                     "grasp_ok": len(ok)}
+                counts[row][c][s] = {
+                    "sequences": len(cell),
+                    "grasped": len(grasped),
+                    "grasp_ok": len(ok),
+                }
                 failures[row][c][s] = sorted({g["reason"] for g in grasped if g["reason"]})
-                per_view[row][c][s] = [
-                    round(float(v), 4)
-                    for v in np.mean([r.per_view[row]["jaccard"] for r in cell], axis=0)
-                ] if cell else []
-    return {"tables": tables, "counts": counts, "per_view_jaccard": per_view,
-            "grasp_failures": failures, "conditions": conditions, "splits": splits}
+                per_view[row][c][s] = (
+                    [
+                        round(float(v), 4)
+                        for v in np.mean([r.per_view[row]["jaccard"] for r in cell], axis=0)
+                    ]
+                    if cell
+                    else []
+                )
+    return {
+        "tables": tables,
+        "counts": counts,
+        "per_view_jaccard": per_view,
+        "grasp_failures": failures,
+        "conditions": conditions,
+        "splits": splits,
+    }
 
 
 def per_object_records(results: list[SequenceResult], settings: Settings) -> list[dict]:
@@ -467,17 +526,23 @@ def per_object_records(results: list[SequenceResult], settings: Settings) -> lis
     for r in results:
         for row in settings.rows:
             g = r.grasps.get(row)
-            records.append({
-                "table": r.job.table, "condition": r.job.condition, "split": r.job.split,
-                "index": r.job.index, "object_ids": r.object_ids, "model": row,
-                "jaccard": _mean(r.per_view[row]["jaccard"]),
-                "fscore_1": _mean(r.per_view[row]["fscore_1"]),
-                "fscore_2": _mean(r.per_view[row]["fscore_2"]),
-                "jaccard_per_view": [round(v, 4) for v in r.per_view[row]["jaccard"]],
-                "joint_error_deg": None if g is None else g["error_deg"],
-                "joint_error_per_joint_deg": None if g is None else g["per_joint_deg"],
-                "grasp": g,
-            })
+            records.append(
+                {
+                    "table": r.job.table,
+                    "condition": r.job.condition,
+                    "split": r.job.split,
+                    "index": r.job.index,
+                    "object_ids": r.object_ids,
+                    "model": row,
+                    "jaccard": _mean(r.per_view[row]["jaccard"]),
+                    "fscore_1": _mean(r.per_view[row]["fscore_1"]),
+                    "fscore_2": _mean(r.per_view[row]["fscore_2"]),
+                    "jaccard_per_view": [round(v, 4) for v in r.per_view[row]["jaccard"]],
+                    "joint_error_deg": None if g is None else g["error_deg"],
+                    "joint_error_per_joint_deg": None if g is None else g["per_joint_deg"],
+                    "grasp": g,
+                }
+            )
     return records
 
 
@@ -507,11 +572,14 @@ def build_results(results: list[SequenceResult], settings: Settings, wall: dict)
             out[key] = {
                 "condition": c,
                 "split": "test",
-                "tables": {m: {row: agg["tables"][m][row][c]["test"] for row in settings.rows}
-                           for m in METRICS},
+                "tables": {
+                    m: {row: agg["tables"][m][row][c]["test"] for row in settings.rows}
+                    for m in METRICS
+                },
                 "counts": {row: agg["counts"][row][c]["test"] for row in settings.rows},
-                "grasp_failures": {row: agg["grasp_failures"][row][c]["test"]
-                                   for row in settings.rows},
+                "grasp_failures": {
+                    row: agg["grasp_failures"][row][c]["test"] for row in settings.rows
+                },
                 "objects": [r.object_ids[0] for r in results if r.job.table == table],
             }
     return out
@@ -549,9 +617,11 @@ def markdown_table(results: dict, metric: str) -> str:
     conditions = [c for c in PAPER_ORDER if c in next(iter(tables.values()), {})]
     if metric == "joint_error_deg":
         conditions = [c for c in conditions if c in SINGLE_OBJECT_CONDITIONS]
-    header = "| Model | " + " | ".join(
-        f"{CONDITION_LABELS[c]} {s}" for c in conditions for s in ("train", "test")
-    ) + " |"
+    header = (
+        "| Model | "
+        + " | ".join(f"{CONDITION_LABELS[c]} {s}" for c in conditions for s in ("train", "test"))
+        + " |"
+    )
     lines = [header, "|" + "---|" * (1 + 2 * len(conditions))]
     learned = [r for r in rows if r != FUSION]
     for row in rows:
@@ -572,12 +642,16 @@ def markdown_object_table(block: dict) -> str:
     """Rows = models, columns = the four metrics (camera_pan, test objects only)."""
     tables = block["tables"]
     rows = list(tables["jaccard"])
-    lines = ["| Model | Jaccard | F@1% | F@2% | Joint error | grasps ok |", "|---|---|---|---|---|---|"]
+    lines = [
+        "| Model | Jaccard | F@1% | F@2% | Joint error | grasps ok |",
+        "|---|---|---|---|---|---|",
+    ]
     for row in rows:
         n = block["counts"][row]
         cells = [_fmt(tables[m][row], m) for m in METRICS]
-        lines.append(f"| {ROW_LABELS[row]} | " + " | ".join(cells)
-                     + f" | {n['grasp_ok']}/{n['grasped']} |")
+        lines.append(
+            f"| {ROW_LABELS[row]} | " + " | ".join(cells) + f" | {n['grasp_ok']}/{n['grasped']} |"
+        )
     return "\n".join(lines)
 
 
@@ -604,30 +678,51 @@ def markdown_report(results: dict) -> str:
             for s, n in per_split.items():
                 if c in SINGLE_OBJECT_CONDITIONS and n["grasped"] and n["grasp_ok"] < n["grasped"]:
                     reasons = "; ".join(results["grasp_failures"][row][c][s])
-                    lines.append(f"- {ROW_LABELS[row]}, {CONDITION_LABELS[c]} {s}: "
-                                 f"{n['grasped'] - n['grasp_ok']} of {n['grasped']} without a "
-                                 f"comparable grasp ({reasons})")
+                    lines.append(
+                        f"- {ROW_LABELS[row]}, {CONDITION_LABELS[c]} {s}: "
+                        f"{n['grasped'] - n['grasp_ok']} of {n['grasped']} without a "
+                        f"comparable grasp ({reasons})"
+                    )
     if lines:
-        parts += ["Grasps left out of Table III (no prediction surface or no grasp found):", "",
-                  *lines, ""]
-    for key, title in (("named_objects", "Held-out named pybullet_data objects"),
-                       ("objects_dir", "Objects from --objects")):
+        parts += [
+            "Grasps left out of Table III (no prediction surface or no grasp found):",
+            "",
+            *lines,
+            "",
+        ]
+    for key, title in (
+        ("named_objects", "Held-out named pybullet_data objects"),
+        ("objects_dir", "Objects from --objects"),
+    ):
         block = results.get(key)
         if block:
-            parts += [f"## {title} (camera pan, test)", "",
-                      f"Objects: {', '.join(block['objects'])}", "", markdown_object_table(block),
-                      ""]
+            parts += [
+                f"## {title} (camera pan, test)",
+                "",
+                f"Objects: {', '.join(block['objects'])}",
+                "",
+                markdown_object_table(block),
+                "",
+            ]
     t = results["timings_s"]
-    parts += ["## Timings (seconds)", "",
-              "| stage | seconds |", "|---|---|",
-              *[f"| {k} (summed over sequences) | {v:.1f} |"
-                for k, v in t["stages_summed_over_sequences"].items()],
-              *[f"| wall: {k} | {v:.1f} |" for k, v in t["wall"].items()], "",
-              "Notes: F-score samples 8,192 points on each marching-cubes surface (same seed for "
-              "both sides); resampling the very same surface already costs a few points of "
-              "F@1% (d is 0.4 voxel), so F@1% is below 1 even for a perfect completion. An "
-              "empty prediction scores F = 0. Single-View is scored on every condition (the "
-              "paper leaves some cells N/A).", ""]
+    parts += [
+        "## Timings (seconds)",
+        "",
+        "| stage | seconds |",
+        "|---|---|",
+        *[
+            f"| {k} (summed over sequences) | {v:.1f} |"
+            for k, v in t["stages_summed_over_sequences"].items()
+        ],
+        *[f"| wall: {k} | {v:.1f} |" for k, v in t["wall"].items()],
+        "",
+        "Notes: F-score samples 8,192 points on each marching-cubes surface (same seed for "
+        "both sides); resampling the very same surface already costs a few points of "
+        "F@1% (d is 0.4 voxel), so F@1% is below 1 even for a perfect completion. An "
+        "empty prediction scores F = 0. Single-View is scored on every condition (the "
+        "paper leaves some cells N/A).",
+        "",
+    ]
     return "\n".join(parts)
 
 
@@ -650,8 +745,9 @@ def write_figures(results: dict, raw: list[SequenceResult], out: Path) -> list[P
     rows = list(per_view)
     conditions = [c for c in PAPER_ORDER if c in next(iter(per_view.values()), {})]
     if conditions:
-        fig, axes = plt.subplots(1, len(conditions), figsize=(3.6 * len(conditions), 3.4),
-                                 squeeze=False, sharey=True)
+        fig, axes = plt.subplots(
+            1, len(conditions), figsize=(3.6 * len(conditions), 3.4), squeeze=False, sharey=True
+        )
         for ax, c in zip(axes[0], conditions, strict=True):
             for row in rows:
                 split = "test" if per_view[row][c].get("test") else "train"
@@ -676,11 +772,15 @@ def write_figures(results: dict, raw: list[SequenceResult], out: Path) -> list[P
         fig = plt.figure(figsize=(1.9 * len(cols), 2.0 * len(examples)))
         for i, r in enumerate(examples):
             ex = r.example
-            grids = [_unpack(ex["input"]), _unpack(ex["target"]),
-                     *[_unpack(ex["rows"][n]) for n in row_names]]
+            grids = [
+                _unpack(ex["input"]),
+                _unpack(ex["target"]),
+                *[_unpack(ex["rows"][n]) for n in row_names],
+            ]
             for j, (title, occ) in enumerate(zip(cols, grids, strict=True)):
-                ax = fig.add_subplot(len(examples), len(cols), i * len(cols) + j + 1,
-                                     projection="3d")
+                ax = fig.add_subplot(
+                    len(examples), len(cols), i * len(cols) + j + 1, projection="3d"
+                )
                 pts = np.argwhere(occ)
                 if len(pts) > 2500:
                     pts = pts[np.random.default_rng(0).choice(len(pts), 2500, replace=False)]
@@ -695,8 +795,15 @@ def write_figures(results: dict, raw: list[SequenceResult], out: Path) -> list[P
                 if i == 0:
                     ax.set_title(ROW_LABELS.get(title, title), fontsize=8)
                 if j == 0:
-                    ax.text2D(-0.1, 0.5, f"{r.job.table}\n{CONDITION_LABELS[r.job.condition]}",
-                              transform=ax.transAxes, fontsize=7, rotation=90, va="center")
+                    ax.text2D(
+                        -0.1,
+                        0.5,
+                        f"{r.job.table}\n{CONDITION_LABELS[r.job.condition]}",
+                        transform=ax.transAxes,
+                        fontsize=7,
+                        rotation=90,
+                        va="center",
+                    )
         fig.suptitle("Final view: input, ground truth and each row's completion", fontsize=9)
         path = out / "examples.png"
         fig.savefig(path, dpi=100)
@@ -709,44 +816,80 @@ def write_figures(results: dict, raw: list[SequenceResult], out: Path) -> list[P
     return written
 
 
+#: Rows shown in grasps.png (the first ones present): the paper's model, a baseline, the reference.
+GRASP_FIGURE_ROWS: tuple[str, ...] = ("mvp", "single_view", FUSION)
+
+
+def _figure_rows(rows: list[str]) -> list[str]:
+    return [n for n in GRASP_FIGURE_ROWS if n in rows] or rows[:1]
+
+
+def _grasp_result(summary: dict):
+    """A ``GraspResult`` carrying the pose and joints of a JSON grasp summary (for rendering)."""
+    from grasp.autograsp import GraspResult, HandDofs, HandJoints
+
+    joints = HandJoints(*summary["joints_deg"])
+    return GraspResult(
+        summary["success"],
+        summary["reason"],
+        np.asarray(summary["palm_pose"]),
+        joints,
+        HandDofs(summary["spread_deg"], 0.0, 0.0, 0.0),
+    )
+
+
 def _grasp_figure(raw: list[SequenceResult], out: Path, plt) -> Path | None:
-    """The planned palm pose on each example's prediction and the truth mesh, per row."""
+    """grasps.png: per example, the grasp on the prediction and the re-grasp on the truth.
+
+    Rendered with :func:`grasp.render.render_grasp` (pybullet TinyRenderer, side view).
+    """
     from grasp import metrics
+    from grasp.render import render_grasp
 
     shown = [r for r in raw if r.example is not None and r.grasps]
     if not shown:
         return None
-    row_names = [n for n in shown[0].grasps]
-    fig = plt.figure(figsize=(2.6 * len(row_names), 2.6 * len(shown)))
+    rows = _figure_rows(list(shown[0].grasps))
+    cols = [(n, side) for n in rows for side in ("on_prediction", "on_truth")]
+    fig, axes = plt.subplots(
+        len(shown), len(cols), figsize=(2.4 * len(cols), 2.6 * len(shown)), squeeze=False
+    )
     for i, r in enumerate(shown):
         ex = r.example
-        seq_like = Sequence(np.zeros((1, *G.GRID_SHAPE), bool), np.zeros((1, *G.GRID_SHAPE), bool),
-                            ex["grid_to_camera"][None], ex["camera_to_world"][None],
-                            {"object_ids": r.object_ids, "object_to_world": [ex["object_to_world"]]})
+        seq_like = Sequence(
+            np.zeros((1, *G.GRID_SHAPE), bool),
+            np.zeros((1, *G.GRID_SHAPE), bool),
+            ex["grid_to_camera"][None],
+            ex["camera_to_world"][None],
+            {"object_ids": r.object_ids, "object_to_world": [ex["object_to_world"]]},
+        )
         truth = truth_mesh_in_latest_camera(seq_like)
-        for j, name in enumerate(row_names):
-            ax = fig.add_subplot(len(shown), len(row_names), i * len(row_names) + j + 1,
-                                 projection="3d")
+        for j, (name, side) in enumerate(cols):
+            ax = axes[i][j]
+            ax.axis("off")
             g = r.grasps[name]
-            pred = metrics.mesh_or_none(ex["probabilities"][name].astype(np.float32),
-                                        ex["grid_to_camera"], threshold=ex["thresholds"][name])
-            for mesh, color in ((truth, "tab:gray"), (pred, "tab:orange")):
-                if mesh is not None:
-                    v = mesh.vertices
-                    ax.plot_trisurf(v[:, 0], v[:, 2], -v[:, 1], triangles=mesh.faces,
-                                    color=color, alpha=0.35, linewidth=0)
-            if g["palm_pose"] is not None:
-                pose = np.asarray(g["palm_pose"])
-                o = pose[:3, 3]
-                for axis, color in zip(range(3), ("r", "g", "b"), strict=True):
-                    e = o + 0.05 * pose[:3, axis]
-                    ax.plot([o[0], e[0]], [o[2], e[2]], [-o[1], -e[1]], color=color)
-            err = g["error_deg"]
-            ax.set_title(f"{ROW_LABELS[name]}\n"
-                         + (f"{err:.1f}°" if err is not None else g["reason"][:30]), fontsize=7)
-            ax.set_axis_off()
-    fig.suptitle("Planned palm pose (z = approach, blue) on prediction (orange) vs truth (grey)",
-                 fontsize=9)
+            title = f"{ROW_LABELS[name]}: " + ("prediction" if side == "on_prediction" else "truth")
+            if j == 0:
+                title = f"{r.job.table} {CONDITION_LABELS[r.job.condition]}\n" + title
+            if side == "on_truth" and g["error_deg"] is not None:
+                title += f" ({g['error_deg']:.1f}°)"
+            ax.set_title(title, fontsize=7)
+            if g[side] is None:
+                ax.text(0.5, 0.5, g["reason"], ha="center", va="center", fontsize=6, wrap=True)
+                continue
+            mesh = truth
+            if side == "on_prediction":
+                mesh = metrics.mesh_or_none(
+                    ex["probabilities"][name],
+                    ex["grid_to_camera"],
+                    threshold=ex["thresholds"][name],
+                )
+            image = render_grasp(mesh, _grasp_result(g[side]), width=240, height=240)[0]
+            ax.imshow(image)
+    fig.suptitle(
+        "Grasp planned on the completion, and the same pre-grasp re-run on the truth", fontsize=9
+    )
+    fig.tight_layout()
     path = out / "grasps.png"
     fig.savefig(path, dpi=100)
     plt.close(fig)
@@ -814,31 +957,79 @@ def build_parser() -> argparse.ArgumentParser:
         "every model on freshly generated scenes (deterministic from --seed).",
     )
     size = p.add_mutually_exclusive_group()
-    size.add_argument("--quick", action="store_const", const="quick", dest="preset",
-                      help="a smoke test of the whole chain (a few minutes)")
-    size.add_argument("--full", action="store_const", const="full", dest="preset",
-                      help="paper-sized: more sequences and the full planner (hours on 2 cores)")
+    size.add_argument(
+        "--quick",
+        action="store_const",
+        const="quick",
+        dest="preset",
+        help="a smoke test of the whole chain (a few minutes)",
+    )
+    size.add_argument(
+        "--full",
+        action="store_const",
+        const="full",
+        dest="preset",
+        help="paper-sized: more sequences and the full planner (hours on 2 cores)",
+    )
     p.set_defaults(preset="default")
-    p.add_argument("--conditions", type=_list_arg(CONDITIONS, "conditions"), default=CONDITIONS,
-                   help="comma-separated conditions (default: all five)")
-    p.add_argument("--models", type=_list_arg(ROWS, "rows"), default=ROWS,
-                   help=f"comma-separated rows (default: all of {', '.join(ROWS)})")
-    p.add_argument("--objects", type=Path, default=None, metavar="DIR",
-                   help="also evaluate every OBJ/STL/PLY mesh in DIR (camera pan, one sequence each)")
-    p.add_argument("--count", type=_positive(1), default=None,
-                   help="sequences per condition and split (overrides the preset)")
-    p.add_argument("--grasp-count", type=_positive(0), default=None,
-                   help="of those, how many are also grasped (single-object conditions)")
-    p.add_argument("--named", type=_positive(0), default=None,
-                   help="held-out named pybullet_data objects to evaluate (0 = none)")
-    p.add_argument("--candidates", type=_positive(1), default=None,
-                   help="grasp planner candidates per plan (overrides the preset)")
+    p.add_argument(
+        "--conditions",
+        type=_list_arg(CONDITIONS, "conditions"),
+        default=CONDITIONS,
+        help="comma-separated conditions (default: all five)",
+    )
+    p.add_argument(
+        "--models",
+        type=_list_arg(ROWS, "rows"),
+        default=ROWS,
+        help=f"comma-separated rows (default: all of {', '.join(ROWS)})",
+    )
+    p.add_argument(
+        "--objects",
+        type=Path,
+        default=None,
+        metavar="DIR",
+        help="also evaluate every OBJ/STL/PLY mesh in DIR (camera pan, one sequence each)",
+    )
+    p.add_argument(
+        "--count",
+        type=_positive(1),
+        default=None,
+        help="sequences per condition and split (overrides the preset)",
+    )
+    p.add_argument(
+        "--grasp-count",
+        type=_positive(0),
+        default=None,
+        help="of those, how many are also grasped (single-object conditions)",
+    )
+    p.add_argument(
+        "--named",
+        type=_positive(0),
+        default=None,
+        help="held-out named pybullet_data objects to evaluate (0 = none)",
+    )
+    p.add_argument(
+        "--candidates",
+        type=_positive(1),
+        default=None,
+        help="grasp planner candidates per plan (overrides the preset)",
+    )
     p.add_argument("--views", type=_positive(2), default=VIEWS, help="views per sequence")
-    p.add_argument("--workers", type=_positive(1), default=None,
-                   help="worker processes (default: the CPUs this process may use)")
+    p.add_argument(
+        "--workers",
+        type=_positive(1),
+        default=None,
+        help="worker processes (default: the CPUs this process may use)",
+    )
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--weights", type=Path, default=None, metavar="DIR",
-                   help="folder of <model>.pt checkpoints (default: completion/weights/)")
+    p.add_argument(
+        "--weights",
+        type=Path,
+        default=None,
+        metavar="DIR",
+        help="folder of <model>.pt checkpoints (default: completion/weights/)",
+    )
     p.add_argument("--out", type=Path, default=Path("evaluation"))
     p.add_argument("--no-figures", action="store_true")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
@@ -858,12 +1049,14 @@ def settings_from_args(args: argparse.Namespace, parser: argparse.ArgumentParser
         if not path.is_file():
             train = f"python -m completion.train --model {name} --out {path}"
             if name in ("mvp3", "mvp6"):
-                train = (f"python -m completion.train --model {name} --views {name[-1]} "
-                         f"--out {path}")
-            parser.exit(2, f"{parser.prog}: error: missing weights for model {name!r}: {path} "
-                           f"does not exist. Train them with `{train}` (see "
-                           "completion/weights/README.md), pass --weights DIR, or leave the "
-                           f"model out with --models.\n")
+                train = f"python -m completion.train --model {name} --views {name[-1]} --out {path}"
+            parser.exit(
+                2,
+                f"{parser.prog}: error: missing weights for model {name!r}: {path} "
+                f"does not exist. Train them with `{train}` (see "
+                "completion/weights/README.md), pass --weights DIR, or leave the "
+                f"model out with --models.\n",
+            )
         paths.append((name, str(path)))
     objects: tuple[str, ...] = ()
     if args.objects is not None:
@@ -873,18 +1066,27 @@ def settings_from_args(args: argparse.Namespace, parser: argparse.ArgumentParser
             parser.error(str(exc))
     workers = args.workers
     if workers is None:
-        workers = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (
-            os.cpu_count() or 1)
+        workers = (
+            len(os.sched_getaffinity(0))
+            if hasattr(os, "sched_getaffinity")
+            else (os.cpu_count() or 1)
+        )
     count = args.count if args.count is not None else preset.count
     return Settings(
-        rows=tuple(args.models), model_paths=tuple(paths), conditions=tuple(args.conditions),
+        rows=tuple(args.models),
+        model_paths=tuple(paths),
+        conditions=tuple(args.conditions),
         count=count,
-        grasp_count=min(count, args.grasp_count if args.grasp_count is not None
-                        else preset.grasp_count),
+        grasp_count=min(
+            count, args.grasp_count if args.grasp_count is not None else preset.grasp_count
+        ),
         named=args.named if args.named is not None else preset.named,
-        objects=objects, views=args.views, seed=args.seed,
+        objects=objects,
+        views=args.views,
+        seed=args.seed,
         candidates=args.candidates if args.candidates is not None else preset.candidates,
-        workers=workers, examples=not args.no_figures,
+        workers=workers,
+        examples=not args.no_figures,
     )
 
 
@@ -903,6 +1105,18 @@ if __name__ == "__main__":
 
 
 __all__ = [
-    "Evaluator", "Job", "Settings", "PRESETS", "ROWS", "MODEL_NAMES", "FUSION", "aggregate",
-    "build_results", "evaluate", "make_jobs", "markdown_report", "registered_fusion", "run_jobs",
+    "Evaluator",
+    "Job",
+    "Settings",
+    "PRESETS",
+    "ROWS",
+    "MODEL_NAMES",
+    "FUSION",
+    "aggregate",
+    "build_results",
+    "evaluate",
+    "make_jobs",
+    "markdown_report",
+    "registered_fusion",
+    "run_jobs",
 ]

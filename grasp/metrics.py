@@ -34,12 +34,19 @@ from scipy.spatial import cKDTree
 from completion.grid import GRID_SHAPE, GRID_SIZE
 from completion.mesh import EmptyMeshError, grid_to_mesh
 
-#: Points sampled on each surface for the F-score (Tatarchenko et al. 2019 use 10k; the issue 8,192).
+#: Points sampled on each surface for the F-score (8,192, as the issue asks).
 FSCORE_SAMPLES = 8192
 #: Distance thresholds as fractions of the grid side length (40 × pitch).
 FSCORE_FRACTIONS: tuple[float, ...] = (0.01, 0.02)
 JOINT_NAMES: tuple[str, ...] = (
-    "f1_spread", "f1_prox", "f1_dist", "f2_spread", "f2_prox", "f2_dist", "f3_prox", "f3_dist",
+    "f1_spread",
+    "f1_prox",
+    "f1_dist",
+    "f2_spread",
+    "f2_prox",
+    "f2_dist",
+    "f3_prox",
+    "f3_dist",
 )
 
 
@@ -60,7 +67,9 @@ def _as_grid(grid: np.ndarray, name: str) -> np.ndarray:
     if g.shape != GRID_SHAPE:
         raise ValueError(f"{name} must be a {GRID_SHAPE} grid, got shape {g.shape}")
     if g.dtype != bool:
-        raise ValueError(f"{name} must be a bool grid (threshold probabilities first), got {g.dtype}")
+        raise ValueError(
+            f"{name} must be a bool grid (threshold probabilities first), got {g.dtype}"
+        )
     return g
 
 
@@ -203,31 +212,45 @@ class JointError:
 
     error_deg : mean |θ_pred − θ_gt| over the 8 joints, None when there was no grasp to compare
     per_joint_deg : (8,) |θ_pred − θ_gt| in the joint order of :data:`JOINT_NAMES`, or None
-    predicted_deg / realized_deg : the 8 joint angles on the prediction and on the ground truth
-    palm_pose : (4, 4) the planned palm pose on the prediction (None without a grasp)
+    planned : the planner's best grasp on the prediction (a ``GraspResult``), or None
+    on_prediction / on_truth : the re-grasps of the prediction and of the truth from the planned
+        grasp's pre-grasp pose (``GraspResult``), or None
     reason : why there is no error value ("" when there is one)
     """
 
     error_deg: float | None
     per_joint_deg: np.ndarray | None = None
-    predicted_deg: np.ndarray | None = None
-    realized_deg: np.ndarray | None = None
-    palm_pose: np.ndarray | None = None
-    spread_deg: float | None = None
+    planned: object | None = None
+    on_prediction: object | None = None
+    on_truth: object | None = None
     reason: str = ""
 
     def as_dict(self) -> dict:
+        """JSON-ready summary (angles in degrees, poses as nested lists)."""
+
         def plain(a):
             return None if a is None else np.asarray(a, dtype=float).round(6).tolist()
+
+        def grasp(g):
+            if g is None:
+                return None
+            return {
+                "success": bool(g.success),
+                "reason": g.reason,
+                "palm_pose": plain(g.palm_pose),
+                "joints_deg": plain(g.joints_deg),
+                "spread_deg": float(g.dofs_deg.spread),
+                "epsilon": round(float(g.epsilon), 6),
+                "volume": round(float(g.volume), 6),
+            }
 
         return {
             "error_deg": self.error_deg,
             "per_joint_deg": plain(self.per_joint_deg),
-            "predicted_deg": plain(self.predicted_deg),
-            "realized_deg": plain(self.realized_deg),
-            "palm_pose": plain(self.palm_pose),
-            "spread_deg": self.spread_deg,
             "reason": self.reason,
+            "planned": grasp(self.planned),
+            "on_prediction": grasp(self.on_prediction),
+            "on_truth": grasp(self.on_truth),
         }
 
 
@@ -252,26 +275,32 @@ def grasp_joint_error(
     the truth (:func:`grasp.autograsp.regrasp`), and, with the very same protocol, the prediction.
     Grasping both sides from the same pre-grasp pose makes the error exactly 0 for identical
     shapes and leaves only the geometric difference; the planned grasp itself is what the
-    re-grasp on the prediction reproduces whenever the approach line is clear.
+    re-grasp on the prediction reproduces whenever the approach line is clear. The planner ranks
+    force-closure grasps first; when none of the candidates reaches force closure its best
+    attempt is still compared (``planned.success`` is then False), as GraspIt!'s planner would
+    still return its best-scoring grasp.
     """
+    if prediction is None:
+        return JointError(None, reason="empty completion: no surface to plan on")
     from grasp.autograsp import PREGRASP_BACKOFF_M, joint_error_deg, regrasp
     from grasp.planner import plan
 
-    if prediction is None:
-        return JointError(None, reason="empty completion: no surface to plan on")
+    from grasp.sim import CollisionScene, check_mesh
+
     back = PREGRASP_BACKOFF_M if backoff is None else float(backoff)
-    grasps = plan(prediction, n_candidates=n_candidates, seed=seed, **(planner_options or {}))
+    scene = CollisionScene(check_mesh(prediction))  # one collision model for plan and re-grasp
+    options = {"top_k": 1, **(planner_options or {})}
+    grasps = plan(scene, n_candidates=n_candidates, seed=seed, **options)
     if not grasps:
-        return JointError(None, reason="the planner found no grasp on the completion")
+        return JointError(None, reason="the planner returned no grasp on the completion")
     best = grasps[0]
-    on_prediction = regrasp(best, prediction, backoff=back)
+    on_prediction = regrasp(best, scene, backoff=back)
     on_truth = regrasp(best, truth, backoff=back)
     mean, per_joint = joint_error_deg(on_prediction, on_truth)
     return JointError(
         error_deg=round(mean, 6),
         per_joint_deg=per_joint,
-        predicted_deg=np.asarray(on_prediction.joints_deg, dtype=float),
-        realized_deg=np.asarray(on_truth.joints_deg, dtype=float),
-        palm_pose=np.asarray(best.palm_pose, dtype=float),
-        spread_deg=float(best.dofs_deg.spread),
+        planned=best,
+        on_prediction=on_prediction,
+        on_truth=on_truth,
     )

@@ -9,9 +9,10 @@ Two views of the same world, built from the same :class:`hands.barrett.HandKinem
 - :class:`CollisionScene`: the fcl mirror that autograsp queries thousands of times per grasp. fcl
   answers "does this link overlap the mesh?" in ~10 µs with an early exit (OBBRSS tree over the
   triangles), where pybullet's ``getClosestPoints`` enumerates every overlapping triangle (~1.5 ms
-  for a link pressed on a 20k-face sphere) and has no boolean query. The object's convex hull (an
-  fcl ``Convex``, GJK distance ~20 µs) bounds the distance to the object from below, which lets
-  autograsp take long safe steps through free space.
+  for a link pressed on a 20k-face sphere) and has no boolean query. A convex polytope around the
+  object (a k-DOP: 106 support planes, an fcl ``Convex``; GJK distance ~20 µs) bounds the
+  distance to the object from below, which lets autograsp take long safe steps through free
+  space. (fcl's exact mesh distance would also do, but costs ~1 ms near a large surface.)
 
 Both treat the object as a triangle soup, like GraspIt! and pybullet's concave meshes: a link that
 is entirely inside a closed mesh without crossing its surface is not "in collision". Autograsp's
@@ -35,6 +36,7 @@ import numpy as np
 import pybullet
 import trimesh
 from pybullet_utils import bullet_client
+from scipy.spatial import ConvexHull, HalfspaceIntersection, QhullError
 from scipy.spatial.transform import Rotation
 
 from hands.barrett import BH8_282, JOINT_NAMES, LINK_NAMES, BarrettParams, HandKinematics
@@ -42,8 +44,14 @@ from hands.barrett.kinematics import Primitive
 
 #: Two surfaces closer than this are in contact (GraspIt!: 0.2 mm).
 CONTACT_DISTANCE_M = 2e-4
-#: At most this many contact points are kept per link (farthest-point subset of fcl's contacts).
-MAX_CONTACTS_PER_LINK = 6
+#: A contact patch (one link, like normals) keeps at most this many corner points.
+MAX_CONTACTS_PER_PATCH = 4
+#: Contact normals within this angle belong to one patch.
+_PATCH_COS = float(np.cos(np.radians(10.0)))
+#: A patch smaller than this across counts as a point contact (or a line if only narrower).
+_POINT_PATCH_M = 0.010
+#: Directions (besides ±x, ±y, ±z) of the k-DOP that bounds the object for free-space steps.
+_BOUND_DIRECTIONS = 100
 
 
 # -- records ---------------------------------------------------------------------------------------
@@ -171,7 +179,7 @@ class CollisionScene:
         bvh.addSubModel(vertices, faces)
         bvh.endModel()
         self._object = fcl.CollisionObject(bvh, fcl.Transform())
-        self._hull = self._convex_hull(mesh)
+        self._hull = self._bounding_polytope(mesh)
         self.center, self.max_radius = object_frame(mesh)
         self.links = {
             link: _LinkShapes(self.kinematics.primitives_of(link), contact_distance)
@@ -182,16 +190,20 @@ class CollisionScene:
         self._distance_request = fcl.DistanceRequest()
 
     @staticmethod
-    def _convex_hull(mesh: trimesh.Trimesh):
+    def _bounding_polytope(mesh: trimesh.Trimesh):
+        """fcl ``Convex`` of a k-DOP around the mesh (None for a flat or degenerate mesh)."""
+        vertices = np.asarray(mesh.vertices, dtype=np.float64)
+        directions = np.vstack([np.eye(3), -np.eye(3), fibonacci_directions(_BOUND_DIRECTIONS)])
+        support = (vertices @ directions.T).max(axis=0) + 1e-6  # strictly outside the mesh
         try:
-            hull = mesh.convex_hull
-        except Exception:  # qhull fails on flat or degenerate meshes: no free-space bound then
+            corners = HalfspaceIntersection(
+                np.hstack([directions, -support[:, None]]), vertices.mean(axis=0)
+            ).intersections
+            faces = ConvexHull(corners).simplices
+        except (QhullError, ValueError):  # flat mesh: no interior point, no free-space bound
             return None
-        if len(hull.faces) < 4 or not hull.is_volume:
-            return None
-        faces = np.hstack([np.full((len(hull.faces), 1), 3), hull.faces]).ravel()
-        convex = fcl.Convex(np.asarray(hull.vertices, dtype=np.float64), len(hull.faces), faces)
-        return fcl.CollisionObject(convex, fcl.Transform())
+        flat = np.hstack([np.full((len(faces), 1), 3), faces]).ravel()
+        return fcl.CollisionObject(fcl.Convex(corners, len(faces), flat), fcl.Transform())
 
     # -- queries ---------------------------------------------------------------------------------
     def link_collides(self, link: str, link_to_world: np.ndarray) -> bool:
@@ -211,7 +223,7 @@ class CollisionScene:
     def hull_distance(self, link: str, link_to_world: np.ndarray) -> float:
         """Lower bound on the distance (m) from ``link`` to the object; 0 if unknown or touching.
 
-        It is the exact distance to the object's convex hull, which contains the object.
+        It is the exact distance to a convex polytope that contains the object.
         """
         if self._hull is None:
             return 0.0
@@ -238,13 +250,16 @@ class CollisionScene:
         return any(self.link_collides(link, pose) for link, pose in poses.items())
 
     def contacts(
-        self, link_poses: Mapping[str, np.ndarray], *, max_per_link: int = MAX_CONTACTS_PER_LINK
+        self, link_poses: Mapping[str, np.ndarray], *, max_per_patch: int = MAX_CONTACTS_PER_PATCH
     ) -> list[Contact]:
         """Contacts between the given links (link→world (4, 4)) and the object.
 
         A link is in contact where it comes within ``contact_distance`` of the surface (its
-        primitives are inflated by that much). Per link, fcl's triangle contacts are merged at
-        0.1 mm and at most ``max_per_link`` spread-out points are kept.
+        primitives are inflated by that much). fcl reports one contact per touching triangle;
+        per link they are grouped into patches of like normals (within 10°), and each patch is
+        reduced to a point, a line (2 points) or the corners of its outline (at most
+        ``max_per_patch``), with the patch's mean normal. For a fixed force direction a contact's
+        wrenches are linear in its position, so the corners span the wrench hull of the patch.
         """
         out: list[Contact] = []
         for link, link_pose in link_poses.items():
@@ -256,41 +271,75 @@ class CollisionScene:
                 result = fcl.CollisionResult()
                 if not fcl.collide(obj, self._object, self._contact_request, result):
                     continue
-                for contact in result.contacts:
-                    normal = np.asarray(contact.normal, dtype=np.float64)
-                    norm = np.linalg.norm(normal)
-                    if not norm > 0.0:
-                        continue
-                    normal = normal / norm
-                    point = np.asarray(contact.pos, dtype=np.float64)
-                    # fcl's sign convention depends on the pair; the force points from the
-                    # link's inside toward the contact
-                    if np.dot(normal, point - pose[:3, 3]) < 0.0:
-                        normal = -normal
-                    points.append(point)
-                    normals.append(normal)
-            if not points:
-                continue
-            keep = _spread_subset(np.asarray(points), max_per_link)
-            out.extend(Contact(link, points[i], normals[i]) for i in keep)
+                pos = np.array([c.pos for c in result.contacts], dtype=np.float64)  # (m, 3)
+                nrm = np.array([c.normal for c in result.contacts], dtype=np.float64)
+                length = np.linalg.norm(nrm, axis=1)
+                pos, nrm = pos[length > 0.0], nrm[length > 0.0] / length[length > 0.0, None]
+                # fcl's sign convention depends on the pair; the force points from the
+                # primitive's inside toward the contact
+                outward = np.einsum("ij,ij->i", nrm, pos - pose[:3, 3]) < 0.0
+                nrm[outward] *= -1.0
+                points.extend(pos)
+                normals.extend(nrm)
+            if points:
+                for point, normal in _patches(np.array(points), np.array(normals), max_per_patch):
+                    out.append(Contact(link, point, normal))
         return out
 
 
-def _spread_subset(points: np.ndarray, k: int) -> list[int]:
-    """Indices of at most ``k`` mutually distant points of (n, 3) ``points`` (merged at 0.1 mm)."""
-    _, unique = np.unique(np.round(points / 1e-4).astype(np.int64), axis=0, return_index=True)
-    unique = np.sort(unique)
-    pts = points[unique]
-    if len(pts) <= k:
-        return unique.tolist()
-    # farthest-point sampling from the point farthest from the centroid (rigid-motion invariant)
+def fibonacci_directions(n: int) -> np.ndarray:
+    """(n, 3) unit vectors spread evenly over the sphere (golden-angle spiral)."""
+    i = np.arange(n) + 0.5
+    z = 1.0 - 2.0 * i / n
+    r = np.sqrt(np.clip(1.0 - z * z, 0.0, 1.0))
+    phi = np.pi * (3.0 - np.sqrt(5.0)) * i
+    return np.stack([r * np.cos(phi), r * np.sin(phi), z], axis=1)
+
+
+def _patches(points: np.ndarray, normals: np.ndarray, k: int) -> list[tuple[np.ndarray, ...]]:
+    """Reduce (n, 3) contact points and unit normals to patch corners with mean normals."""
+    out = []
+    remaining = np.arange(len(points))
+    while remaining.size:
+        alike = normals[remaining] @ normals[remaining[0]] > _PATCH_COS
+        members, remaining = remaining[alike], remaining[~alike]
+        normal = normals[members].mean(axis=0)
+        normal /= np.linalg.norm(normal)
+        out.extend((point, normal) for point in _outline(points[members], normal, k))
+    return out
+
+
+def _outline(points: np.ndarray, normal: np.ndarray, k: int) -> list[np.ndarray]:
+    """Representative points of one contact patch: (n, 3) points around a unit ``normal``.
+
+    A patch whose extent is under ``_POINT_PATCH_M`` becomes one point (its mean), a patch
+    narrower than that a line (its two ends along the long axis), anything wider the corners of
+    its outline (at most ``k``, farthest-point subset). The 0.2 mm contact band turns a touching
+    sphere or cylinder into a patch a few millimetres wide; this undoes that.
+    """
+    helper = np.eye(3)[int(np.argmin(np.abs(normal)))]
+    t1 = np.cross(normal, helper)
+    t1 /= np.linalg.norm(t1)
+    t2 = np.cross(normal, t1)
+    flat = np.stack([points @ t1, points @ t2], axis=1)  # (n, 2)
+    centred = flat - flat.mean(axis=0)
+    _, _, axes = np.linalg.svd(centred, full_matrices=False)
+    along = centred @ axes.T  # (n, 2) coordinates along the principal axes
+    extent = np.ptp(along, axis=0) if len(points) > 1 else np.zeros(2)
+    if extent[0] < _POINT_PATCH_M:
+        return [points.mean(axis=0)]
+    if len(extent) < 2 or extent[1] < _POINT_PATCH_M:
+        return [points[int(np.argmin(along[:, 0]))], points[int(np.argmax(along[:, 0]))]]
+    corners = ConvexHull(flat, qhull_options="QJ").vertices
+    pts = flat[corners]
+    # farthest-point sampling from the corner farthest from the centroid (rigid-motion invariant)
     chosen = [int(np.argmax(np.linalg.norm(pts - pts.mean(axis=0), axis=1)))]
     dist = np.linalg.norm(pts - pts[chosen[0]], axis=1)
-    while len(chosen) < k:
+    while len(chosen) < min(k, len(pts)):
         nxt = int(np.argmax(dist))
         chosen.append(nxt)
         dist = np.minimum(dist, np.linalg.norm(pts - pts[nxt], axis=1))
-    return unique[chosen].tolist()
+    return [points[corners[i]] for i in chosen]
 
 
 # -- pybullet world ----------------------------------------------------------------------------

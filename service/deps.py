@@ -63,9 +63,7 @@ def require_token(
             "missing bearer token: send the header 'Authorization: Bearer <token>'",
             headers=challenge,
         )
-    if not hmac.compare_digest(
-        credentials.credentials.encode(), token.get_secret_value().encode()
-    ):
+    if not hmac.compare_digest(credentials.credentials.encode(), token.get_secret_value().encode()):
         raise HTTPException(
             status.HTTP_401_UNAUTHORIZED,
             "wrong bearer token: send the token the server was started with (GRASP_TOKEN)",

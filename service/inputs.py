@@ -89,14 +89,16 @@ def _points(points: list[list[float]], max_points: int) -> np.ndarray:
     far = np.flatnonzero(np.abs(pts).max(axis=1, initial=0.0) > MAX_COORDINATE_M)
     if len(far):
         raise InputError(
-            loc, f"point coordinates must lie within ±{MAX_COORDINATE_M:g} m; "
-            f"point {far[0]} is {pts[far[0]].tolist()}"
+            loc,
+            f"point coordinates must lie within ±{MAX_COORDINATE_M:g} m; "
+            f"point {far[0]} is {pts[far[0]].tolist()}",
         )
     behind = np.flatnonzero(pts[:, 2] <= 0)
     if len(behind):
         raise InputError(
-            loc, "points must lie in front of the camera (z > 0 m, camera frame); "
-            f"point {behind[0]} has z = {pts[behind[0], 2]:g}"
+            loc,
+            "points must lie in front of the camera (z > 0 m, camera frame); "
+            f"point {behind[0]} has z = {pts[behind[0], 2]:g}",
         )
     return pts
 
@@ -104,8 +106,9 @@ def _points(points: list[list[float]], max_points: int) -> np.ndarray:
 def _image_size_ok(width: int, height: int, max_pixels: int, loc: tuple[str, ...]) -> None:
     if width * height > max_pixels:
         raise InputError(
-            loc, f"image is {width}×{height} = {width * height} pixels; "
-            f"the limit is {max_pixels} pixels"
+            loc,
+            f"image is {width}×{height} = {width * height} pixels; "
+            f"the limit is {max_pixels} pixels",
         )
 
 
@@ -139,15 +142,17 @@ def _depth(depth: DepthIn, max_pixels: int) -> np.ndarray:
     if depth.encoding == "f32_m":
         if len(raw) != 4 * w * h:
             raise InputError(
-                loc, f"f32_m depth of {w}×{h} needs width × height × 4 = {4 * w * h} bytes, "
-                f"got {len(raw)}"
+                loc,
+                f"f32_m depth of {w}×{h} needs width × height × 4 = {4 * w * h} bytes, "
+                f"got {len(raw)}",
             )
         values = np.frombuffer(raw, dtype="<f4").reshape(h, w).astype(np.float64)
         finite = values[np.isfinite(values)]
         if finite.size and finite.min() < 0:
             raise InputError(
-                loc, "depth must be ≥ 0 m (0, NaN or ±inf mark pixels without a return); "
-                f"found {finite.min():g}"
+                loc,
+                "depth must be ≥ 0 m (0, NaN or ±inf mark pixels without a return); "
+                f"found {finite.min():g}",
             )
         if finite.size and finite.max() > MAX_COORDINATE_M:
             raise InputError(
@@ -191,8 +196,9 @@ def _camera_pose(rows: list[list[float]]) -> np.ndarray:
     r = m[:3, :3]
     if not np.allclose(r @ r.T, np.eye(3), atol=RIGID_TOL) or np.linalg.det(r) < 0:
         raise InputError(
-            loc, "camera_pose must be a rigid camera→world transform "
-            "(orthonormal rotation with determinant +1, metres)"
+            loc,
+            "camera_pose must be a rigid camera→world transform "
+            "(orthonormal rotation with determinant +1, metres)",
         )
     return m
 
@@ -210,7 +216,8 @@ def _grid(grid: GridIn) -> VoxelGrid:
     det = float(np.linalg.det(t[:3, :3]))
     if not det > 1e-15:
         raise InputError(
-            loc, "grid_to_camera must map voxel indices to metres with a positive scale "
-            f"(determinant of the 3×3 part > 0), got determinant {det:g}"
+            loc,
+            "grid_to_camera must map voxel indices to metres with a positive scale "
+            f"(determinant of the 3×3 part > 0), got determinant {det:g}",
         )
     return VoxelGrid(VoxelGrid.unpack(raw), t)

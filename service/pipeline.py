@@ -72,7 +72,10 @@ class Pipeline:
             result = _step(stream, view)
             session_id = uuid.uuid4().hex
             self.store.create(
-                session_id, model=self.model_id, state=stream.to_bytes(), views=stream.views,
+                session_id,
+                model=self.model_id,
+                state=stream.to_bytes(),
+                views=stream.views,
                 object_seen=stream.grid_to_camera is not None,
             )
             return session_id, result
@@ -82,7 +85,9 @@ class Pipeline:
             result = _step(stream, view)
             try:
                 self.store.update(
-                    record, state=stream.to_bytes(), views=stream.views,
+                    record,
+                    state=stream.to_bytes(),
+                    views=stream.views,
                     object_seen=stream.grid_to_camera is not None,
                 )
             except ConcurrentUpdate:
@@ -116,9 +121,7 @@ class Pipeline:
         c = self.snapshot(session_id).completion
         return grid_to_mesh(c.probabilities, c.grid_to_camera, threshold=c.threshold)
 
-    def grasps(
-        self, session_id: str, *, top_k: int, n_candidates: int, seed: int
-    ) -> PlannedGrasps:
+    def grasps(self, session_id: str, *, top_k: int, n_candidates: int, seed: int) -> PlannedGrasps:
         """Complete, mesh and plan; the timing of each stage in milliseconds."""
         from grasp.planner import plan
 
@@ -135,7 +138,10 @@ class Pipeline:
         results = plan(mesh, n_candidates=n_candidates, seed=seed, top_k=top_k)
         t4 = time.perf_counter()
         timing = {
-            "load": t1 - t0, "completion": t2 - t1, "mesh": t3 - t2, "planning": t4 - t3,
+            "load": t1 - t0,
+            "completion": t2 - t1,
+            "mesh": t3 - t2,
+            "planning": t4 - t3,
             "total": t4 - t0,
         }
         snapshot = Snapshot(record, completion, stream.camera_to_world)

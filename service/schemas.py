@@ -121,9 +121,7 @@ class GraspsOut(BaseModel):
     session_id: str
     views: int
     grasps: list[GraspOut] = Field(description="best first; empty when no candidate held")
-    reason: str | None = Field(
-        None, description="why no grasp was found, when grasps is empty"
-    )
+    reason: str | None = Field(None, description="why no grasp was found, when grasps is empty")
     timing_ms: dict[str, float] = Field(description="load, completion, mesh, planning, total")
 
 

@@ -105,7 +105,8 @@ class SessionStore:
             record = SessionRecord(*row[:5], bool(row[5]), bytes(row[6]))
             if self._expired(record.updated):
                 con.execute(
-                    "DELETE FROM sessions WHERE id = ? AND updated = ?", (session_id, record.updated)
+                    "DELETE FROM sessions WHERE id = ? AND updated = ?",
+                    (session_id, record.updated),
                 )
                 raise SessionNotFound(self.not_found_message(session_id))
         return record
@@ -175,7 +176,9 @@ class SessionStore:
                 if exists is None:
                     raise SessionNotFound(self.not_found_message(record.id))
                 raise ConcurrentUpdate(f"session {record.id!r} changed while a view was applied")
-        return SessionRecord(record.id, record.model, record.created, now, views, object_seen, state)
+        return SessionRecord(
+            record.id, record.model, record.created, now, views, object_seen, state
+        )
 
     def delete(self, session_id: str) -> bool:
         """Delete a session; False when there was none."""

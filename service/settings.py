@@ -38,7 +38,9 @@ class Settings(BaseSettings):
     n_candidates: int = Field(64, ge=1, description="default grasp candidates per GET /grasp")
     max_candidates: int = Field(512, ge=1, description="largest n_candidates a client may ask")
     plan_seed: int = Field(0, description="seed of the grasp planner (same state, same grasp)")
-    torch_threads: int = Field(1, ge=1, description="torch intra-op threads (torch.set_num_threads)")
+    torch_threads: int = Field(
+        1, ge=1, description="torch intra-op threads (torch.set_num_threads)"
+    )
     inference_workers: int = Field(
         2, ge=1, description="model steps (POST /views, completions) running at once"
     )

@@ -19,6 +19,7 @@ out" toward +z and then over the palm. Joint order everywhere: :data:`JOINT_NAME
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Literal
@@ -84,13 +85,28 @@ def transform(rotation: np.ndarray | None = None, translation: Sequence[float] =
 
 def axis_rotation(axis: np.ndarray, angle: float) -> np.ndarray:
     """(4, 4) rotation by ``angle`` radians about the unit ``axis`` (one of ±x, ±y, ±z)."""
-    return transform(_axis_matrix(axis, angle))
+    return _rotation_fn(axis)(angle)
 
 
-def _axis_matrix(axis: np.ndarray, angle: float) -> np.ndarray:
+def _rotation_fn(axis: np.ndarray):
+    """A fast ``angle -> (4, 4)`` rotation about a coordinate axis (±x, ±y or ±z)."""
+    axis = np.asarray(axis, dtype=np.float64)
     index = int(np.argmax(np.abs(axis)))
+    if not np.isclose(abs(axis[index]), 1.0) or np.count_nonzero(axis) != 1:
+        raise ValueError(f"joint axes must be ±x, ±y or ±z, got {axis}")
     sign = float(np.sign(axis[index]))
-    return (rot_x, rot_y, rot_z)[index](sign * angle)
+
+    def rotation(angle: float) -> np.ndarray:
+        c, s = math.cos(angle), sign * math.sin(angle)
+        if index == 0:
+            rows = [[1.0, 0.0, 0.0, 0.0], [0.0, c, -s, 0.0], [0.0, s, c, 0.0]]
+        elif index == 1:
+            rows = [[c, 0.0, s, 0.0], [0.0, 1.0, 0.0, 0.0], [-s, 0.0, c, 0.0]]
+        else:
+            rows = [[c, -s, 0.0, 0.0], [s, c, 0.0, 0.0], [0.0, 0.0, 1.0, 0.0]]
+        return np.array([*rows, [0.0, 0.0, 0.0, 1.0]])
+
+    return rotation
 
 
 @dataclass(frozen=True)
@@ -144,6 +160,9 @@ class HandKinematics:
         self.joints: tuple[JointSpec, ...] = self._build_joints()
         self.primitives: tuple[Primitive, ...] = self._build_primitives()
         self._joint_by_name = {joint.name: joint for joint in self.joints}
+        self._rotation = {
+            joint.name: _rotation_fn(joint.axis) for joint in self.joints if joint.kind != "fixed"
+        }
 
     # -- structure ------------------------------------------------------------------------------
     def _build_joints(self) -> tuple[JointSpec, ...]:
@@ -277,17 +296,16 @@ class HandKinematics:
         """(4, 4) ``fN_knuckle`` frame in the palm frame at the given spread (radians)."""
         if finger == "f3":
             return self._joint_by_name["f3_base"].origin.copy()
-        joint = self._joint_by_name[f"{finger}_spread"]
-        return joint.origin @ axis_rotation(joint.axis, spread_rad)
+        name = f"{finger}_spread"
+        return self._joint_by_name[name].origin @ self._rotation[name](spread_rad)
 
     def finger_poses(
         self, knuckle: np.ndarray, finger: str, prox_rad: float, dist_rad: float
     ) -> tuple[np.ndarray, np.ndarray]:
         """(4, 4) ``fN_prox`` and ``fN_dist`` frames, given the knuckle frame (any parent frame)."""
-        j2 = self._joint_by_name[f"{finger}_prox"]
-        j3 = self._joint_by_name[f"{finger}_dist"]
-        prox = knuckle @ j2.origin @ axis_rotation(j2.axis, prox_rad)
-        dist = prox @ j3.origin @ axis_rotation(j3.axis, dist_rad)
+        j2, j3 = f"{finger}_prox", f"{finger}_dist"
+        prox = knuckle @ self._joint_by_name[j2].origin @ self._rotation[j2](prox_rad)
+        dist = prox @ self._joint_by_name[j3].origin @ self._rotation[j3](dist_rad)
         return prox, dist
 
     def link_poses(self, joints_rad: Sequence[float]) -> dict[str, np.ndarray]:

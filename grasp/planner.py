@@ -1,0 +1,178 @@
+"""Grasp planning: candidate palm poses around an object, autograsp each, rank by quality.
+
+Candidates (deterministic from ``seed``):
+
+1. Along the object's principal axes (±3 directions), with the fingers' opposition axis (palm y)
+   laid along each of the two other principal axes, spreads 0° and 60° (24 poses). Boxes,
+   cylinders and most man-made objects are grasped best this way.
+2. The rest from a Fibonacci sphere of approach directions, randomly rotated by the seed, each
+   with a seeded roll about the approach axis and a spread drawn from ``spreads_deg``.
+
+Every candidate aims the palm's +z at the object's centre from outside its bounding sphere and
+approaches until contact. Results come back as values: a candidate that fails is a
+``GraspResult`` with ``success=False`` and its reason, ranked after the successes.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+import trimesh
+
+from grasp.autograsp import GraspResult, autograsp
+from grasp.sim import CollisionScene, check_mesh, fibonacci_directions
+
+#: Spreads (degrees) the random candidates draw from: parallel fingers, tripod, T, and between.
+DEFAULT_SPREADS_DEG: tuple[float, ...] = (0.0, 30.0, 60.0, 90.0)
+#: The palm starts this far outside the object's bounding sphere (metres).
+STANDOFF_M = 0.02
+
+
+@dataclass(frozen=True)
+class Candidate:
+    """One pre-grasp: palm→world (4, 4) pose aimed at the object, and a spread in degrees."""
+
+    palm_pose: np.ndarray
+    spread_deg: float
+    source: str  # "principal" or "sphere"
+
+
+def principal_axes(mesh: trimesh.Trimesh) -> np.ndarray:
+    """(3, 3) rows: the object's principal axes, longest extent first (area-weighted PCA).
+
+    Signs are fixed (largest component positive) so that the axes are deterministic.
+    """
+    weights = mesh.area_faces / max(mesh.area, 1e-300)
+    centroids = mesh.triangles_center
+    mean = weights @ centroids
+    centred = (centroids - mean) * np.sqrt(weights)[:, None]
+    _, _, axes = np.linalg.svd(centred, full_matrices=False)
+    axes = axes[:3]
+    flip = np.sign(axes[np.arange(3), np.argmax(np.abs(axes), axis=1)])
+    axes = axes * flip[:, None]
+    if np.linalg.det(axes) < 0:
+        axes[2] *= -1.0
+    return axes
+
+
+def _palm_pose(approach: np.ndarray, opposition: np.ndarray, target: np.ndarray, distance: float):
+    """Palm pose with +z along ``approach``, +y near ``opposition``, ``distance`` before target."""
+    z = approach / np.linalg.norm(approach)
+    y = opposition - np.dot(opposition, z) * z
+    if np.linalg.norm(y) < 1e-9:
+        y = np.cross(z, np.eye(3)[int(np.argmin(np.abs(z)))])
+    y /= np.linalg.norm(y)
+    x = np.cross(y, z)
+    pose = np.eye(4)
+    pose[:3, 0], pose[:3, 1], pose[:3, 2] = x, y, z
+    pose[:3, 3] = target - distance * z
+    return pose
+
+
+def candidate_poses(
+    mesh: trimesh.Trimesh,
+    *,
+    n_candidates: int = 64,
+    seed: int | np.random.Generator = 0,
+    spreads_deg: Sequence[float] = DEFAULT_SPREADS_DEG,
+    standoff: float = STANDOFF_M,
+) -> list[Candidate]:
+    """``n_candidates`` pre-grasp poses around ``mesh`` (principal-axis ones first)."""
+    check_mesh(mesh)
+    if n_candidates < 1:
+        raise ValueError(f"n_candidates must be >= 1, got {n_candidates}")
+    if not spreads_deg or any(not 0.0 <= s <= 180.0 for s in spreads_deg):
+        raise ValueError(f"spreads_deg must be non-empty values in [0, 180], got {spreads_deg}")
+    rng = np.random.default_rng(seed)
+    center = np.asarray(mesh.bounds.mean(axis=0))
+    distance = float(np.linalg.norm(mesh.vertices - center, axis=1).max()) + standoff
+    axes = principal_axes(mesh)
+    out: list[Candidate] = []
+    for i in range(3):
+        for sign in (1.0, -1.0):
+            for j in (k for k in range(3) if k != i):
+                for spread in (0.0, 60.0):
+                    pose = _palm_pose(sign * axes[i], axes[j], center, distance)
+                    out.append(Candidate(pose, spread, "principal"))
+    n_sphere = max(n_candidates - len(out), 0)
+    out = out[:n_candidates]
+    if n_sphere:
+        rotation = _random_rotation(rng)
+        directions = fibonacci_directions(n_sphere) @ rotation.T
+        rolls = rng.uniform(0.0, 2.0 * math.pi, n_sphere)
+        spreads = rng.choice(np.asarray(spreads_deg, dtype=np.float64), n_sphere)
+        for direction, roll, spread in zip(directions, rolls, spreads, strict=True):
+            approach = -direction  # from the sphere point toward the centre
+            base = _palm_pose(approach, np.eye(3)[int(np.argmin(np.abs(approach)))], center, 0.0)
+            opposition = math.cos(roll) * base[:3, 1] + math.sin(roll) * base[:3, 0]
+            pose = _palm_pose(approach, opposition, center, distance)
+            out.append(Candidate(pose, float(spread), "sphere"))
+    return out
+
+
+def _random_rotation(rng: np.random.Generator) -> np.ndarray:
+    """(3, 3) uniformly random rotation (unit quaternion from four normals)."""
+    q = rng.normal(size=4)
+    w, x, y, z = q / np.linalg.norm(q)
+    return np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+            [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+            [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
+        ]
+    )
+
+
+def rank_key(result: GraspResult) -> tuple[bool, float, float]:
+    """Sort key, best first when sorted descending: success, epsilon, volume."""
+    return (result.success, result.epsilon, result.volume)
+
+
+def plan(
+    mesh: trimesh.Trimesh | CollisionScene,
+    *,
+    n_candidates: int = 64,
+    seed: int = 0,
+    top_k: int | None = 10,
+    spreads_deg: Sequence[float] = DEFAULT_SPREADS_DEG,
+    max_travel: float | None = None,
+) -> list[GraspResult]:
+    """Plan BarrettHand grasps on ``mesh``: the best ``top_k`` of ``n_candidates`` autograsps.
+
+    Parameters
+    ----------
+    mesh : trimesh.Trimesh or CollisionScene
+        The object, world frame, metres.
+    n_candidates : int
+        Number of candidate pre-grasps (see :func:`candidate_poses`).
+    seed : int
+        Seed of the random candidates; the same seed gives the same plan.
+    top_k : int or None
+        How many results to return (None: all), best first.
+    spreads_deg : sequence of float
+        Spreads the random candidates choose from.
+    max_travel : float or None
+        Longest approach; default: through the whole bounding sphere.
+
+    Returns
+    -------
+    list of GraspResult, sorted by (success, epsilon, volume) descending; ties keep candidate order.
+    """
+    scene = mesh if isinstance(mesh, CollisionScene) else CollisionScene(check_mesh(mesh))
+    if top_k is not None and top_k < 1:
+        raise ValueError(f"top_k must be >= 1 or None, got {top_k}")
+    candidates = candidate_poses(
+        scene.mesh, n_candidates=n_candidates, seed=seed, spreads_deg=spreads_deg
+    )
+    radius = float(np.linalg.norm(scene.mesh.extents))  # bounding-box diagonal
+    travel = radius + 2.0 * STANDOFF_M if max_travel is None else max_travel
+    results = [
+        autograsp(scene, c.palm_pose, spread_deg=c.spread_deg, max_travel=travel)
+        for c in candidates
+    ]
+    order = sorted(range(len(results)), key=lambda i: rank_key(results[i]), reverse=True)
+    ranked = [results[i] for i in order]
+    return ranked if top_k is None else ranked[:top_k]

@@ -1,0 +1,176 @@
+"""The FastAPI app factory: settings in, app out; the model is loaded in the lifespan.
+
+Errors: every exception a client can cause maps to a 4xx with a ``detail`` saying what was
+expected (422 details are lists of ``{loc, msg, type}`` as FastAPI's own), never a 500.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+from collections.abc import AsyncIterator
+from contextlib import asynccontextmanager
+
+import anyio.to_thread
+from anyio import CapacityLimiter
+from fastapi import FastAPI, HTTPException, Request, status
+from fastapi.exceptions import RequestValidationError
+from fastapi.responses import JSONResponse
+from starlette.types import ASGIApp, Message, Receive, Scope, Send
+
+from completion.mesh import EmptyMeshError
+from completion.stream import NoObjectError
+from service.deps import Services
+from service.inputs import InputError
+from service.pipeline import ModelMismatch, Pipeline
+from service.routes import health_router, router
+from service.sessions import (
+    ConcurrentUpdate,
+    SessionLocks,
+    SessionNotFound,
+    SessionStore,
+    StoreFull,
+)
+from service.settings import Settings
+
+log = logging.getLogger(__name__)
+
+#: Seconds between sweeps that delete expired sessions (at most; shorter for short TTLs).
+PURGE_INTERVAL_S = 60.0
+
+
+def create_app(settings: Settings | None = None) -> FastAPI:
+    """The service; ``settings`` default to the ``GRASP_*`` environment."""
+    settings = settings or Settings()
+    app = FastAPI(
+        title="mvp-grasp",
+        summary="Stream depth views of an object, get a BarrettHand grasp on its completed shape",
+        version="0.1.0",
+        lifespan=_lifespan,
+    )
+    app.state.settings = settings
+    app.include_router(router)
+    app.include_router(health_router)
+    app.add_middleware(BodyLimit, max_bytes=settings.max_body_bytes)
+    for exc_type, code in _STATUS.items():
+        app.add_exception_handler(exc_type, _message_handler(code))
+    app.add_exception_handler(InputError, _input_error)
+    app.add_exception_handler(RequestValidationError, _validation_error)
+    return app
+
+
+@asynccontextmanager
+async def _lifespan(app: FastAPI) -> AsyncIterator[None]:
+    import torch
+
+    from completion.model import load_model
+
+    settings: Settings = app.state.settings
+    torch.set_num_threads(settings.torch_threads)
+    model = await anyio.to_thread.run_sync(load_model, settings.model)
+    store = SessionStore(
+        settings.store_path, max_sessions=settings.max_sessions, ttl_s=settings.session_ttl_s
+    )
+    pipeline = await anyio.to_thread.run_sync(
+        lambda: Pipeline(model, store, model_name=settings.model)
+    )
+    app.state.services = Services(
+        settings=settings,
+        pipeline=pipeline,
+        inference=CapacityLimiter(settings.inference_workers),
+        planning=CapacityLimiter(settings.planning_workers),
+        locks=SessionLocks(),
+    )
+    log.info("model %s (weights %s), store %s", settings.model, pipeline.model_id, store.path)
+    sweeper = asyncio.create_task(_purge_expired(store))
+    try:
+        yield
+    finally:
+        sweeper.cancel()
+        with contextlib.suppress(asyncio.CancelledError):
+            await sweeper
+
+
+async def _purge_expired(store: SessionStore) -> None:
+    interval = min(PURGE_INTERVAL_S, store.ttl_s)
+    while True:
+        await asyncio.sleep(interval)
+        try:
+            await anyio.to_thread.run_sync(store.purge_expired)
+        except Exception:  # a busy or broken store must not end the sweeps
+            log.exception("purging expired sessions failed")
+
+
+# ------------------------------------------------------------------------------- errors
+
+_STATUS: dict[type[Exception], int] = {
+    SessionNotFound: status.HTTP_404_NOT_FOUND,
+    NoObjectError: status.HTTP_409_CONFLICT,
+    EmptyMeshError: status.HTTP_409_CONFLICT,
+    ModelMismatch: status.HTTP_409_CONFLICT,
+    ConcurrentUpdate: status.HTTP_409_CONFLICT,
+    StoreFull: status.HTTP_503_SERVICE_UNAVAILABLE,
+}
+_HINTS: dict[type[Exception], str] = {
+    NoObjectError: "; POST /views with a view that shows the object first",
+    EmptyMeshError: "; nothing to mesh or grasp: add views that show the object",
+}
+
+
+def _message_handler(code: int):
+    async def handler(request: Request, exc: Exception) -> JSONResponse:
+        detail = str(exc) + _HINTS.get(type(exc), "")
+        headers = {"Retry-After": "60"} if code == status.HTTP_503_SERVICE_UNAVAILABLE else None
+        return JSONResponse({"detail": detail}, status_code=code, headers=headers)
+
+    return handler
+
+
+async def _input_error(request: Request, exc: InputError) -> JSONResponse:
+    detail = [{"loc": list(exc.loc), "msg": exc.message, "type": "value_error"}]
+    return JSONResponse({"detail": detail}, status_code=status.HTTP_422_UNPROCESSABLE_CONTENT)
+
+
+async def _validation_error(request: Request, exc: RequestValidationError) -> JSONResponse:
+    """FastAPI's 422, without echoing the (possibly megabytes of) input back."""
+    detail = [
+        {"loc": list(e.get("loc", ())), "msg": e.get("msg", ""), "type": e.get("type", "")}
+        for e in exc.errors()
+    ]
+    return JSONResponse({"detail": detail}, status_code=status.HTTP_422_UNPROCESSABLE_CONTENT)
+
+
+class BodyLimit:
+    """413 for request bodies over ``max_bytes``, by Content-Length or while streaming."""
+
+    def __init__(self, app: ASGIApp, *, max_bytes: int) -> None:
+        self.app = app
+        self.max_bytes = max_bytes
+
+    def _message(self) -> str:
+        return f"request body over the limit of {self.max_bytes} bytes (GRASP_MAX_BODY_BYTES)"
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] != "http":
+            await self.app(scope, receive, send)
+            return
+        for name, value in scope["headers"]:
+            if name == b"content-length" and value.isdigit() and int(value) > self.max_bytes:
+                response = JSONResponse(
+                    {"detail": self._message()}, status.HTTP_413_CONTENT_TOO_LARGE
+                )
+                await response(scope, receive, send)
+                return
+        received = 0
+
+        async def limited() -> Message:
+            nonlocal received
+            message = await receive()
+            if message["type"] == "http.request":
+                received += len(message.get("body", b""))
+                if received > self.max_bytes:
+                    raise HTTPException(status.HTTP_413_CONTENT_TOO_LARGE, self._message())
+            return message
+
+        await self.app(scope, limited, send)

@@ -1,0 +1,229 @@
+"""``python -m service.load``: a bounded load test of a running service on this machine.
+
+Streams the 12 views of simulated camera_pan scenes into ``--sessions`` sessions
+(``--concurrency`` of them at a time), then asks each for a grasp, and prints the latency
+percentiles per route, the errors, and lost views (views answered 200 but missing from the
+session afterwards). Talks to loopback addresses only, and stops by itself::
+
+    python -m service &                       # or any running server
+    python -m service.load --url http://127.0.0.1:8000 --sessions 32 --views 12
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import ipaddress
+import json
+import os
+import sys
+import time
+from collections import defaultdict
+from dataclasses import dataclass, field
+from urllib.parse import urlparse
+
+import numpy as np
+
+ROUTES = ("POST /views", "GET /grasp", "GET /sessions/{id}", "DELETE /sessions/{id}")
+
+
+@dataclass
+class Tally:
+    latency_ms: dict[str, list[float]] = field(default_factory=lambda: defaultdict(list))
+    errors: dict[str, list[str]] = field(default_factory=lambda: defaultdict(list))
+    grasp_timing_ms: list[dict[str, float]] = field(default_factory=list)
+    views_sent: int = 0
+    views_lost: int = 0
+    bad_indices: int = 0
+
+    def summary(self) -> dict:
+        routes = {}
+        for route in ROUTES:
+            lat = np.asarray(self.latency_ms.get(route, []), dtype=float)
+            if not len(lat) and not self.errors.get(route):
+                continue
+            routes[route] = {
+                "requests": int(len(lat)),
+                "p50_ms": _pct(lat, 50),
+                "p99_ms": _pct(lat, 99),
+                "max_ms": float(lat.max()) if len(lat) else None,
+                "errors": len(self.errors.get(route, [])),
+            }
+        split = {}
+        for key in ("load", "completion", "mesh", "planning", "total"):
+            values = [t[key] for t in self.grasp_timing_ms if key in t]
+            if values:
+                split[key] = {
+                    "p50_ms": _pct(np.asarray(values), 50),
+                    "p99_ms": _pct(np.asarray(values), 99),
+                }
+        return {
+            "routes": routes,
+            "grasp_timing_ms": split,
+            "views_sent": self.views_sent,
+            "views_lost": self.views_lost,
+            "out_of_order_view_indices": self.bad_indices,
+            "error_samples": {r: e[:3] for r, e in self.errors.items() if e},
+        }
+
+
+def _pct(values: np.ndarray, q: float) -> float | None:
+    return round(float(np.percentile(values, q)), 1) if len(values) else None
+
+
+def check_loopback(url: str) -> str:
+    """The URL without a trailing slash; ValueError unless it is http(s) on a loopback host."""
+    parsed = urlparse(url)
+    if parsed.scheme not in ("http", "https") or not parsed.hostname:
+        raise ValueError(f"--url must look like http://127.0.0.1:8000, got {url!r}")
+    host = parsed.hostname
+    if host != "localhost":
+        try:
+            loopback = ipaddress.ip_address(host).is_loopback
+        except ValueError:
+            loopback = False
+        if not loopback:
+            raise ValueError(f"the load generator only talks to loopback hosts, got {host!r}")
+    return url.rstrip("/")
+
+
+def make_bodies(n_scenes: int, views: int, seed: int) -> list[list[dict]]:
+    """``n_scenes`` simulated camera_pan scenes (test split) as lists of view bodies."""
+    from completion.scenes import make_sequence
+    from service.client import scene_views
+
+    return [
+        scene_views(make_sequence("camera_pan", "test", i, seed, views=views, keep_depth=True))
+        for i in range(n_scenes)
+    ]
+
+
+async def _timed(client, tally: Tally, route: str, method: str, url: str, **kwargs):
+    start = time.perf_counter()
+    try:
+        response = await client.request(method, url, **kwargs)
+    except Exception as exc:  # a load test counts transport failures instead of stopping
+        tally.errors[route].append(f"{type(exc).__name__}: {exc}")
+        return None
+    tally.latency_ms[route].append((time.perf_counter() - start) * 1e3)
+    if response.status_code >= 400:
+        tally.errors[route].append(f"{response.status_code}: {response.text[:200]}")
+        return None
+    return response
+
+
+async def _session(client, tally: Tally, bodies: list[dict], args) -> None:
+    session_id, indices = None, []
+    for body in bodies:
+        payload = body if session_id is None else {**body, "session_id": session_id}
+        tally.views_sent += 1
+        r = await _timed(client, tally, "POST /views", "POST", "/views", json=payload)
+        if r is None:
+            if session_id is None:
+                return
+            continue
+        session_id = r.json()["session_id"]
+        indices.append(r.json()["view_index"])
+    if indices != list(range(len(indices))):
+        tally.bad_indices += 1
+    params = {"session_id": session_id, "top_k": 1, "n_candidates": args.n_candidates}
+    r = await _timed(client, tally, "GET /grasp", "GET", "/grasp", params=params)
+    if r is not None:
+        tally.grasp_timing_ms.append(r.json()["timing_ms"])
+    r = await _timed(client, tally, "GET /sessions/{id}", "GET", f"/sessions/{session_id}")
+    if r is not None:
+        tally.views_lost += len(indices) - r.json()["views"]
+    if not args.keep:
+        await _timed(client, tally, "DELETE /sessions/{id}", "DELETE", f"/sessions/{session_id}")
+
+
+async def run(args, scenes: list[list[dict]]) -> Tally:
+    import httpx
+
+    tally = Tally()
+    headers = {"Authorization": f"Bearer {args.token}"} if args.token else {}
+    limits = httpx.Limits(max_connections=args.concurrency)
+    semaphore = asyncio.Semaphore(args.concurrency)
+    async with httpx.AsyncClient(
+        base_url=args.url, headers=headers, timeout=args.timeout, limits=limits
+    ) as client:
+        (await client.get("/healthz")).raise_for_status()
+
+        async def one(i: int) -> None:
+            async with semaphore:
+                await _session(client, tally, scenes[i % len(scenes)], args)
+
+        await asyncio.wait_for(
+            asyncio.gather(*(one(i) for i in range(args.sessions))), timeout=args.deadline
+        )
+    return tally
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog="python -m service.load", description=__doc__.split("\n")[0])
+    p.add_argument("--url", default="http://127.0.0.1:8000", help="server on a loopback address")
+    p.add_argument("--sessions", type=int, default=32)
+    p.add_argument("--views", type=int, default=12, help="views per session (at least 2)")
+    p.add_argument("--concurrency", type=int, default=8, help="sessions streaming at once")
+    p.add_argument("--scenes", type=int, default=4, help="distinct simulated scenes, cycled")
+    p.add_argument("--n-candidates", type=int, default=64, help="GET /grasp n_candidates")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--timeout", type=float, default=300.0, help="seconds per request")
+    p.add_argument("--deadline", type=float, default=1800.0, help="seconds for the whole run")
+    p.add_argument("--token", default=os.environ.get("GRASP_TOKEN"), help="default $GRASP_TOKEN")
+    p.add_argument("--keep", action="store_true", help="keep the sessions (default: delete)")
+    p.add_argument("--json", help="also write the summary to this file")
+    args = p.parse_args(argv)
+    try:
+        args.url = check_loopback(args.url)
+    except ValueError as exc:
+        p.error(str(exc))
+    for name in ("sessions", "views", "concurrency", "scenes", "n_candidates"):
+        if getattr(args, name) < (2 if name == "views" else 1):
+            p.error(f"--{name.replace('_', '-')} is too small: {getattr(args, name)}")
+
+    print(f"rendering {args.scenes} scenes × {args.views} views …", flush=True)
+    scenes = make_bodies(min(args.scenes, args.sessions), args.views, args.seed)
+    print(
+        f"{args.sessions} sessions × {args.views} views against {args.url} "
+        f"({args.concurrency} at a time, n_candidates={args.n_candidates})",
+        flush=True,
+    )
+    start = time.perf_counter()
+    try:
+        tally = asyncio.run(run(args, scenes))
+    except TimeoutError:
+        print(f"stopped: the run exceeded --deadline {args.deadline:g} s", file=sys.stderr)
+        return 2
+    wall = time.perf_counter() - start
+    summary = tally.summary() | {"wall_s": round(wall, 2)}
+    _print(summary)
+    if args.json:
+        with open(args.json, "w") as f:
+            json.dump(summary, f, indent=2)
+    failed = any(r["errors"] for r in summary["routes"].values())
+    return 1 if failed or tally.views_lost or tally.bad_indices else 0
+
+
+def _print(summary: dict) -> None:
+    print(f"\n{'route':<24}{'requests':>9}{'p50 ms':>10}{'p99 ms':>10}{'max ms':>10}{'errors':>8}")
+    for route, r in summary["routes"].items():
+        cells = [r["p50_ms"], r["p99_ms"], r["max_ms"]]
+        shown = "".join(f"{'-' if c is None else f'{c:.1f}':>10}" for c in cells)
+        print(f"{route:<24}{r['requests']:>9}{shown}{r['errors']:>8}")
+    if summary["grasp_timing_ms"]:
+        split = ", ".join(
+            f"{k} {v['p50_ms']:.1f}/{v['p99_ms']:.1f}"
+            for k, v in summary["grasp_timing_ms"].items()
+        )
+        print(f"\nGET /grasp server-side split, p50/p99 ms: {split}")
+    print(
+        f"views sent {summary['views_sent']}, lost {summary['views_lost']}, sessions with "
+        f"out-of-order indices {summary['out_of_order_view_indices']}, wall {summary['wall_s']} s"
+    )
+    for route, samples in summary["error_samples"].items():
+        print(f"errors on {route}: {samples}")
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,206 @@
+"""HTTP routes: ``POST /views``, ``GET /grasp``, ``/sessions/{id}`` (mesh, occupancy), ``/healthz``.
+
+Each route checks its input, hands the blocking work to a worker thread and shapes the answer;
+errors are raised as exceptions that :mod:`service.app` turns into 4xx answers.
+"""
+
+from __future__ import annotations
+
+import base64
+from datetime import UTC, datetime
+from typing import Annotated
+
+import numpy as np
+from fastapi import APIRouter, Depends, Path, Query, Response, status
+
+from completion.mesh import MeshFormat, export_mesh
+from hands.barrett import JOINT_NAMES
+from service.deps import ServicesDep, require_token
+from service.inputs import InputError, decode_view
+from service.pipeline import PlannedGrasps
+from service.schemas import (
+    ContactOut,
+    ErrorOut,
+    GraspOut,
+    GraspsOut,
+    HealthOut,
+    OccupancyOut,
+    SessionOut,
+    ViewIn,
+    ViewOut,
+)
+from service.sessions import SessionNotFound
+
+MEDIA_TYPES = {
+    "ply": "application/octet-stream",
+    "obj": "text/plain",
+    "stl": "model/stl",
+    "glb": "model/gltf-binary",
+}
+_WHY = {
+    401: "missing or wrong bearer token (when GRASP_TOKEN is set)",
+    404: "unknown or expired session",
+    409: "the session cannot answer yet (no object seen, empty completion, other model)",
+    413: "request body over GRASP_MAX_BODY_BYTES",
+    422: "invalid input; the detail says what was expected",
+    503: "the session store is full",
+}
+
+
+def _errors(*codes: int) -> dict:
+    return {code: {"model": ErrorOut, "description": _WHY[code]} for code in codes}
+
+
+router = APIRouter(dependencies=[Depends(require_token)], responses=_errors(401, 413, 422))
+health_router = APIRouter()
+PathId = Annotated[str, Path(min_length=1, max_length=128, description="from POST /views")]
+
+
+@router.post("/views", response_model=ViewOut, responses=_errors(404, 409, 503))
+async def post_view(body: ViewIn, services: ServicesDep) -> ViewOut:
+    """Add one view to a session (a new one when ``session_id`` is absent)."""
+    s = services.settings
+    view = await services.infer(
+        decode_view, body, max_image_pixels=s.max_image_pixels, max_points=s.max_points
+    )
+    if body.session_id is None:
+        session_id, result = await services.infer(services.pipeline.add_view, None, view)
+    else:
+        async with services.locks.hold(body.session_id):
+            session_id, result = await services.infer(
+                services.pipeline.add_view, body.session_id, view
+            )
+    return ViewOut(
+        session_id=session_id,
+        view_index=result.view_index,
+        observed_voxels=result.observed_voxels,
+        occupied_voxels=result.occupied_voxels,
+    )
+
+
+@router.get("/grasp", response_model=GraspsOut, responses=_errors(404, 409))
+async def get_grasp(
+    services: ServicesDep,
+    session_id: Annotated[str, Query(min_length=1, max_length=128)],
+    top_k: Annotated[int, Query(ge=1, le=64, description="grasps returned, best first")] = 1,
+    n_candidates: Annotated[
+        int | None, Query(ge=1, description="candidates tried (default GRASP_N_CANDIDATES)")
+    ] = None,
+) -> GraspsOut:
+    """Complete the session's current state, mesh it and plan BarrettHand grasps."""
+    s = services.settings
+    n = s.n_candidates if n_candidates is None else n_candidates
+    if n > s.max_candidates:
+        raise InputError(
+            ("query", "n_candidates"), f"n_candidates must be at most {s.max_candidates}, got {n}"
+        )
+    planned = await services.plan(
+        services.pipeline.grasps, session_id, top_k=top_k, n_candidates=n, seed=s.plan_seed
+    )
+    return _grasps_out(planned)
+
+
+@router.get("/sessions/{session_id}", response_model=SessionOut, responses=_errors(404))
+async def get_session(session_id: PathId, services: ServicesDep) -> SessionOut:
+    """A session's view count and times."""
+    record = await services.infer(services.pipeline.store.get, session_id)
+    ttl = services.pipeline.store.ttl_s
+    return SessionOut(
+        session_id=record.id,
+        views=record.views,
+        object_seen=record.object_seen,
+        created=datetime.fromtimestamp(record.created, UTC),
+        updated=datetime.fromtimestamp(record.updated, UTC),
+        expires=datetime.fromtimestamp(record.updated + ttl, UTC),
+    )
+
+
+@router.delete(
+    "/sessions/{session_id}", status_code=status.HTTP_204_NO_CONTENT, responses=_errors(404)
+)
+async def delete_session(session_id: PathId, services: ServicesDep) -> Response:
+    """Forget a session."""
+    store = services.pipeline.store
+    if not await services.infer(store.delete, session_id):
+        raise SessionNotFound(store.not_found_message(session_id))
+    return Response(status_code=status.HTTP_204_NO_CONTENT)
+
+
+@router.get(
+    "/sessions/{session_id}/mesh",
+    response_class=Response,
+    responses={
+        200: {"content": {m: {} for m in MEDIA_TYPES.values()}, "description": "mesh file"},
+        **_errors(404, 409),
+    },
+)
+async def get_mesh(
+    session_id: PathId,
+    services: ServicesDep,
+    mesh_format: Annotated[MeshFormat, Query(alias="format")] = "ply",
+) -> Response:
+    """The completed shape as a mesh in metres, in the latest view's camera frame."""
+    mesh = await services.infer(services.pipeline.mesh, session_id)
+    data = await services.infer(export_mesh, mesh, mesh_format)
+    return Response(
+        data,
+        media_type=MEDIA_TYPES[mesh_format],
+        headers={"Content-Disposition": f'attachment; filename="{session_id}.{mesh_format}"'},
+    )
+
+
+@router.get(
+    "/sessions/{session_id}/occupancy", response_model=OccupancyOut, responses=_errors(404, 409)
+)
+async def get_occupancy(session_id: PathId, services: ServicesDep) -> OccupancyOut:
+    """The completion thresholded to a 40³ grid (packed bits) with its ``grid_to_camera``."""
+    snapshot, grid = await services.infer(services.pipeline.occupancy, session_id)
+    return OccupancyOut(
+        session_id=session_id,
+        views=snapshot.record.views,
+        shape=list(grid.occupancy.shape),
+        data=base64.b64encode(grid.pack()).decode(),
+        threshold=snapshot.completion.threshold,
+        occupied_voxels=int(grid.occupancy.sum()),
+        grid_to_camera=grid.grid_to_camera.tolist(),
+    )
+
+
+@health_router.get("/healthz", response_model=HealthOut)
+async def healthz(services: ServicesDep) -> HealthOut:
+    """Liveness: the model is loaded and the store answers (no token needed)."""
+    sessions = await services.infer(services.pipeline.store.count)
+    return HealthOut(model=services.pipeline.model_name, sessions=sessions)
+
+
+def _grasps_out(planned: PlannedGrasps) -> GraspsOut:
+    snap = planned.snapshot
+    held = [r for r in planned.results if r.success]
+    reasons = sorted({r.reason for r in planned.results if not r.success and r.reason})
+    return GraspsOut(
+        session_id=snap.record.id,
+        views=snap.record.views,
+        grasps=[_grasp_out(r, snap.camera_to_world) for r in held],
+        reason=None if held else ("; ".join(reasons) or "no grasp candidate"),
+        timing_ms=planned.timing_ms,
+    )
+
+
+def _grasp_out(result, camera_to_world: np.ndarray | None) -> GraspOut:
+    palm = np.asarray(result.palm_pose, dtype=np.float64)
+    return GraspOut(
+        palm_pose=palm.tolist(),
+        palm_pose_world=None if camera_to_world is None else (camera_to_world @ palm).tolist(),
+        joints_deg=dict(zip(JOINT_NAMES, map(float, result.joints_deg), strict=True)),
+        dofs_deg=[float(d) for d in result.dofs_deg],
+        epsilon=float(result.epsilon),
+        volume=float(result.volume),
+        contacts=[
+            ContactOut(
+                link=c.link,
+                point=np.asarray(c.point, dtype=float).tolist(),
+                normal=np.asarray(c.normal, dtype=float).tolist(),
+            )
+            for c in result.contacts
+        ],
+    )
