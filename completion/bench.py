@@ -7,7 +7,9 @@
      "device": "cpu", "threads": 1, ...}
 
 ``latency_ms[L]`` is the median wall time of one ``model.step`` (batch 1, CPU, inference mode)
-taken from the state after L earlier views; ``state_bytes[L]`` is the length of
+taken from the state after L earlier views, ``cpu_ms[L]`` the median CPU time of this thread for
+the same steps (robust to other processes on a shared machine when ``--threads 1``);
+``state_bytes[L]`` is the length of
 ``state_to_bytes(state)`` after L views, i.e. what a service stores per session. Between
 checkpoints the stream is advanced without decoding (``model.advance``), and only ``--repeats``
 steps are timed at each checkpoint (each from the same state), so 1000 views take seconds.
@@ -40,6 +42,7 @@ from completion.model import (
 
 DEFAULT_MODELS = ("mvp", "mvt", "lstm", "single_view")
 DEFAULT_VIEWS = (1, 10, 100, 1000)
+DEFAULT_REPEATS = 15
 WARMUP_STEPS = 2
 INPUT_OCCUPANCY = 0.02
 """Fraction of occupied input voxels in the synthetic frames (timing does not depend on it)."""
@@ -53,11 +56,11 @@ def resolve_model(name: str) -> tuple[CompletionModel, Literal["shipped", "fresh
 
 
 def bench_model(
-    model: CompletionModel, *, views: Sequence[int], repeats: int = 5, seed: int = 0
+    model: CompletionModel, *, views: Sequence[int], repeats: int = DEFAULT_REPEATS, seed: int = 0
 ) -> dict[str, Any]:
     """Time one streaming step after each L in ``views`` and record the state size.
 
-    Returns {"latency_ms": {str(L): float}, "state_bytes": {str(L): int},
+    Returns {"latency_ms": {str(L): float}, "cpu_ms": {str(L): float}, "state_bytes": {str(L): int},
     "state_tensor_bytes": {str(L): int}, "params": int}.
     """
     if repeats < 1:
@@ -71,6 +74,7 @@ def bench_model(
     frames = (torch.rand(4, 1, g, g, g, generator=generator) < INPUT_OCCUPANCY).float().to(device)
     model.eval()
     latency: dict[str, float] = {}
+    cpu: dict[str, float] = {}
     sizes: dict[str, int] = {}
     tensor_sizes: dict[str, int] = {}
     with torch.inference_mode():
@@ -82,17 +86,20 @@ def bench_model(
             while seen < count:
                 state = model.advance(state, frames[seen % len(frames)])
                 seen += 1
-            times = []
+            times, cpu_times = [], []
             for r in range(repeats):
                 frame = frames[(seen + r) % len(frames)]
-                start = time.perf_counter()
+                start, cpu_start = time.perf_counter(), time.thread_time()
                 model.step(state, frame)
                 times.append(time.perf_counter() - start)
+                cpu_times.append(time.thread_time() - cpu_start)
             latency[str(count)] = round(1000.0 * statistics.median(times), 3)
+            cpu[str(count)] = round(1000.0 * statistics.median(cpu_times), 3)
             sizes[str(count)] = len(state_to_bytes(state))
             tensor_sizes[str(count)] = state_nbytes(state)
     return {
         "latency_ms": latency,
+        "cpu_ms": cpu,
         "state_bytes": sizes,
         "state_tensor_bytes": tensor_sizes,
         "params": model.n_params(),
@@ -103,7 +110,7 @@ def run_bench(
     models: Sequence[str] = DEFAULT_MODELS,
     *,
     views: Sequence[int] = DEFAULT_VIEWS,
-    repeats: int = 5,
+    repeats: int = DEFAULT_REPEATS,
     threads: int = 1,
 ) -> dict[str, Any]:
     """Benchmark the named models (shipped weights or default configs) on the CPU."""
@@ -162,7 +169,9 @@ def main(argv: Sequence[str] | None = None) -> None:
         default=list(DEFAULT_VIEWS),
         help="comma-separated view counts L (default: 1,10,100,1000)",
     )
-    parser.add_argument("--repeats", type=int, default=5, help="timed steps per L (median)")
+    parser.add_argument(
+        "--repeats", type=int, default=DEFAULT_REPEATS, help="timed steps per L (median)"
+    )
     parser.add_argument("--threads", type=int, default=1, help="torch CPU threads")
     args = parser.parse_args(argv)
     try:

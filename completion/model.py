@@ -9,8 +9,9 @@ Axis letters used in shape comments and docstrings:
     M  random features (FAVOR+) or E (ReLU kernel)
     T  views held in an MVT key/value cache (grows with the stream)
 
-Every model maps a causal sequence of input occupancy grids to per-view occupancy logits in the
-same grid (the latest view's camera frame), in two forms that give the same numbers:
+Every model maps a causal sequence of input occupancy grids to per-view occupancy logits, each in
+the grid of its own input view (so the latest output is in the latest camera frame), in two forms
+that give the same numbers:
 
 * parallel: ``model(seq)`` (B, L, G, G, G) -> logits (B, L, G, G, G);
 * streaming: ``state = model.init_state(B)``, then ``logits, state = model.step(state, frame)``
@@ -88,10 +89,10 @@ class ModelConfig:
 
     kind: ModelKind = "mvp"
     grid_size: int = 40
-    channels: tuple[int, ...] = (16, 32, 64)
-    conv_kernel: int = 4
+    channels: tuple[int, ...] = (8, 16, 32)
+    conv_kernel: int = 3
     norm: Norm = "none"
-    embed_dim: int = 256
+    embed_dim: int = 128
     n_heads: int = 4
     n_layers: int = 1
     mlp_ratio: int = 2
@@ -188,7 +189,8 @@ def _groups(channels: int) -> int:
 class Encoder(nn.Module):
     """3-D CNN, one frame at a time: (N, G, G, G) -> (N, D).
 
-    Stride-2 conv3d + ReLU per entry of ``channels`` (40³ -> 20³ -> 10³ -> 5³ by default), then a
+    Stride-2 conv3d + ReLU per entry of ``channels`` (40³ -> 20³ -> 10³ -> 5³ by default, with
+    8, 16, 32 channels), then a
     dense layer to D (no activation, so the embedding can be negative for the attention).
     """
 
@@ -475,9 +477,7 @@ class CompletionModel(nn.Module):
         if x.ndim != ndim or tuple(x.shape[-3:]) != (g, g, g):
             expected = "(B, L, G, G, G)" if ndim == 5 else "(B, G, G, G)"
             raise ValueError(f"{what} must be {expected} with G = {g}, got {tuple(x.shape)}")
-        if x.dtype == torch.bool or not x.is_floating_point():
-            x = x.to(self.encoder.dense.weight.dtype)
-        return x
+        return x.to(self.encoder.dense.weight.dtype)  # bool/uint8 occupancy, or another float
 
     # ---- parallel ------------------------------------------------------------------------
 
@@ -585,7 +585,9 @@ def state_to_bytes(state: State) -> bytes:
 def state_from_bytes(data: bytes, *, device: torch.device | str = "cpu") -> State:
     """Inverse of :func:`state_to_bytes` (``torch.load(weights_only=True)``)."""
     state = torch.load(io.BytesIO(data), map_location=device, weights_only=True)
-    if not isinstance(state, dict) or not all(isinstance(v, Tensor) for v in state.values()):
+    if not isinstance(state, dict) or not all(
+        isinstance(k, str) and isinstance(v, Tensor) for k, v in state.items()
+    ):
         raise ValueError("bytes do not hold a dict[str, Tensor] state")
     return state
 
@@ -657,10 +659,17 @@ def read_checkpoint(
 def load_checkpoint(
     path: str | os.PathLike[str], *, map_location: torch.device | str = "cpu"
 ) -> CompletionModel:
-    """Rebuild the model stored at ``path`` (in eval mode); needs nothing but the file."""
+    """Rebuild the model stored at ``path`` (in eval mode); needs nothing but the file.
+
+    ``model.threshold`` is the decision threshold stored with the weights (chosen on validation
+    data by ``python -m completion.train select-threshold``; 0.5 if the file has none) and
+    ``model.name`` the checkpoint's name.
+    """
     payload = read_checkpoint(path, map_location=map_location)
-    model = CompletionModel(ModelConfig.from_dict(payload["config"]))
-    model.load_state_dict(payload["state_dict"])
+    model = build_model(ModelConfig.from_dict(payload["config"]))  # leaves the global RNG alone
+    model.load_state_dict(payload["state_dict"])  # casts e.g. fp16 weights to the fp32 model
+    model.threshold = float(payload.get("threshold", 0.5))
+    model.name = str(payload.get("name", Path(path).stem))
     return model.to(map_location).eval()
 
 

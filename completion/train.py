@@ -44,8 +44,6 @@ from completion.model import (
 )
 from completion.scenes import CONDITIONS
 
-#: The size trained and shipped here: small enough to train in minutes on two CPU cores.
-CPU_CONFIG = {"channels": (8, 16, 32), "conv_kernel": 3, "embed_dim": 128}
 THRESHOLDS = tuple(round(x, 2) for x in np.arange(0.2, 0.81, 0.05))
 
 
@@ -116,7 +114,7 @@ def train(args: argparse.Namespace) -> dict:
         raise ValueError(f"--views {args.views} exceeds the {full_views} views in the shards")
     print(f"train: {n_train} sequences, val: {len(val_set['inputs'])}, device {device}", flush=True)
 
-    config = default_config(args.model, **CPU_CONFIG, **args.config, seed=args.seed)
+    config = default_config(args.model, **args.config, seed=args.seed)
     model = build_model(config).to(device)
     opt = torch.optim.Adam(model.parameters(), lr=args.lr)
     run_dir = args.run_dir or Path("runs") / args.out.stem

@@ -18,19 +18,26 @@ The fingers do not touch each other in this model (finger–finger and finger–
 not checked; at spread 0 fingers 1/2 pass beside finger 3), so each finger's motion depends only
 on the object and the three close independently, which is the same as closing them together.
 
-Speed: the object's convex hull gives a lower bound d on the distance to the object, and no point
-of a moving link travels faster than R per radian of DOF (R from the link corners), so a step of
-d / R is collision-free; autograsp takes max(d / R, step) and checks the end of the step. Far
-from the object that crosses free space in a few steps, near it the GraspIt! step applies. The
-result does not depend on the step size beyond the bisection tolerance unless a step jumps over
-an obstacle thinner than the distance a link moves in one step (2 mm at the fingertip for the
-default step).
+Collision queries go to :class:`grasp.sim.CollisionScene` (python-fcl): a boolean overlap test
+per moving link with early exit, ~10-40 µs. Speed: a convex polytope around the object (k-DOP)
+gives a lower bound d on the distance to the object (fcl GJK), and no point of a moving link
+travels faster than R per unit of motion (R from the link corners), so a step of d / R is
+collision-free; autograsp takes max(d / R, step) and checks the end of the step. Far from the
+object that crosses free space in a few steps (about twice as fast overall), near it the GraspIt!
+step applies. The result does not depend on the step size beyond the bisection tolerance unless
+a step jumps over an obstacle thinner than the distance a link moves in one step (2 mm at the
+fingertip for the default step). Reuse one ``CollisionScene`` per mesh for many grasps.
+
+Known simplifications: a link entirely inside a closed mesh without crossing its surface is not
+in collision (triangle soup, as in GraspIt! and pybullet); there is no dynamics (see
+``grasp.physics`` for a lift test).
 
 This module must not import torch (DESIGN.md §2).
 """
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
@@ -42,7 +49,7 @@ import trimesh
 from grasp.quality import EPSILON_NO_CLOSURE, MU_RUBBER, contacts_quality
 from grasp.sim import CollisionScene, Contact, check_pose
 from hands.barrett import FINGERS, JOINT_NAMES
-from hands.barrett.kinematics import axis_rotation
+from hands.barrett.kinematics import rotation_about
 
 __all__ = [
     "Contact",
@@ -53,6 +60,7 @@ __all__ = [
     "joint_error_deg",
     "pregrasp_pose",
     "regrasp",
+    "with_quality",
 ]
 
 #: GraspIt!'s finger step: 0.01 rad.
@@ -64,6 +72,8 @@ APPROACH_TOL_M = 1e-5
 ANGLE_TOL_RAD = 1e-4
 #: Give up backing off out of collision after this distance.
 MAX_BACKOFF_M = 1.0
+_NO_CONTACT = "no contact: the hand closed on nothing"
+_NOT_SCORED = "quality not computed"
 #: Joint-error protocol: back off this far along the approach axis before regrasping.
 PREGRASP_BACKOFF_M = 0.2
 
@@ -192,9 +202,17 @@ class _Search:
 
     def __init__(self, scene: CollisionScene) -> None:
         self.scene = scene
+        self._last_hit: str | None = None  # checked first: it decides most bisection queries
 
-    def colliding(self, poses: dict[str, np.ndarray]) -> list[str]:
-        return self.scene.colliding_links(poses)
+    def collides(self, poses: dict[str, np.ndarray]) -> bool:
+        last = self._last_hit
+        if last in poses and self.scene.link_collides(last, poses[last]):
+            return True
+        for link, pose in poses.items():
+            if link != last and self.scene.link_collides(link, pose):
+                self._last_hit = link
+                return True
+        return False
 
     def free_distance(self, poses: dict[str, np.ndarray]) -> float:
         return min(self.scene.hull_distance(link, pose) for link, pose in poses.items())
@@ -212,31 +230,32 @@ class _Search:
         """Largest free parameter before the first collision in [start, stop], and the links hit.
 
         ``speed`` bounds how far (metres) any point of the moving links travels per unit of the
-        parameter. Returns (stop, []) when nothing is hit.
+        parameter. The links hit are those overlapping the object at the end of the bisected
+        interval. Returns (stop, []) when nothing is hit.
         """
-        hit = self.colliding(poses_at(start))
-        if hit:
-            return start, hit
+        poses = poses_at(start)
+        if self.collides(poses):
+            return start, self.scene.colliding_links(poses)
         lo, use_hull = start, True
         while lo < stop:
             jump = 0.0
             if use_hull:
-                # a step of d / speed cannot reach the convex hull, hence not the object
-                jump = self.free_distance(poses_at(lo)) / speed
-                use_hull = jump > step  # close to the hull: plain steps from here on
+                # a step of d / speed cannot reach the bounding polytope, hence not the object
+                jump = self.free_distance(poses) / speed
+                use_hull = jump > step  # close to the object: plain steps from here on
             hi = min(lo + max(step, jump), stop)
-            hit = self.colliding(poses_at(hi))
-            if not hit:
+            poses = poses_at(hi)
+            if not self.collides(poses):
                 lo = hi
                 continue
             while hi - lo > tol:
                 mid = 0.5 * (lo + hi)
-                mid_hit = self.colliding(poses_at(mid))
-                if mid_hit:
-                    hi, hit = mid, mid_hit
+                mid_poses = poses_at(mid)
+                if self.collides(mid_poses):
+                    hi, poses = mid, mid_poses
                 else:
                     lo = mid
-            return lo, hit
+            return lo, self.scene.colliding_links(poses)
         return stop, []
 
 
@@ -257,7 +276,7 @@ def _approach(
         return {link: moved @ pose for link, pose in local.items()}
 
     back = 0.0
-    while search.colliding(poses_at(-back)):
+    while search.collides(poses_at(-back)):
         back += step
         if back > MAX_BACKOFF_M:
             return None
@@ -295,10 +314,10 @@ def _close_finger(
     j2 = min(q, j2_max)
     prox_pose, _ = kin.finger_poses(knuckle, finger, j2, 0.0)
     j3_frame = prox_pose @ kin.joint(dist_name).origin
-    axis = kin.joint(dist_name).axis
+    turn = rotation_about(kin.joint(dist_name).axis)
 
     def distal_only(dof: float) -> dict[str, np.ndarray]:
-        return {dist_name: j3_frame @ axis_rotation(axis, ratio * dof)}
+        return {dist_name: j3_frame @ turn(ratio * dof)}
 
     q2, hit2 = search.first_contact(
         distal_only, q, dof_max, step=step, speed=speed_distal, tol=ANGLE_TOL_RAD
@@ -317,6 +336,7 @@ def autograsp(
     approach_step: float = DEFAULT_APPROACH_STEP_M,
     close_step_deg: float = DEFAULT_CLOSE_STEP_DEG,
     mu: float = MU_RUBBER,
+    quality: bool = True,
 ) -> GraspResult:
     """Approach the object along the palm's +z and close the BarrettHand on it (GraspIt! rules).
 
@@ -337,6 +357,9 @@ def autograsp(
         Step of the approach (metres) and of the finger DOFs (degrees) before bisection.
     mu : float
         Friction coefficient for the quality measure.
+    quality : bool
+        Compute epsilon and volume (the 6-D hull is about half the cost of a grasp). Without it
+        they are NaN and ``success`` is False; :func:`with_quality` adds them later.
 
     Returns
     -------
@@ -382,24 +405,34 @@ def autograsp(
 
     link_poses = scene.hand_link_poses(palm, np.radians(hand_joints))
     contacts = tuple(scene.contacts(link_poses))
-    quality = contacts_quality(contacts, center=scene.center, max_radius=scene.max_radius, mu=mu)
-    if not contacts:
-        reason = "no contact: the hand closed on nothing"
-    elif quality.force_closure:
-        reason = "force closure"
-    else:
-        reason = f"no force closure ({len(contacts)} contacts)"
-    return GraspResult(
-        success=quality.force_closure,
-        reason=reason,
+    result = GraspResult(
+        success=False,
+        reason=_NOT_SCORED if contacts else _NO_CONTACT,
         palm_pose=palm,
         joints_deg=hand_joints,
         dofs_deg=HandDofs(spread_deg, *dofs),
         contacts=contacts,
-        epsilon=quality.epsilon,
-        volume=quality.volume,
+        epsilon=math.nan,
+        volume=math.nan,
         travel=travel,
         finger_stops=tuple(stops),
+    )
+    return with_quality(result, scene, mu=mu) if quality else result
+
+
+def with_quality(
+    result: GraspResult, scene: CollisionScene, *, mu: float = MU_RUBBER
+) -> GraspResult:
+    """``result`` with epsilon, volume, success and reason computed from its contacts."""
+    q = contacts_quality(result.contacts, center=scene.center, max_radius=scene.max_radius, mu=mu)
+    if not result.contacts:
+        reason = _NO_CONTACT
+    elif q.force_closure:
+        reason = "force closure"
+    else:
+        reason = f"no force closure ({len(result.contacts)} contacts)"
+    return dataclasses.replace(
+        result, success=q.force_closure, reason=reason, epsilon=q.epsilon, volume=q.volume
     )
 
 

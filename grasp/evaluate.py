@@ -20,8 +20,10 @@ the latest view's grid with the known camera poses (what a user with a calibrate
 without a network; it assumes a static scene, so it smears the sliding object of slide_behind).
 Every row is scored wherever the metric applies (the paper leaves Single-View N/A for the
 conditions it did not train one on; a single-view model applies to every view of every
-condition, so we report it). Cells are null only where a metric does not apply: the joint error
-of the two-object conditions.
+condition, so we report it). Cells are null only where a metric does not apply (the joint error
+of the two-object conditions) or where no sequence of the cell gave a grasp to compare (an empty
+completion has no surface to plan on; ``counts`` and ``grasp_failures`` in results.json say how
+many and why).
 
 Besides the main table: the held-out named pybullet_data objects (camera_pan, test only, one
 sequence per object) and, with ``--objects DIR``, every OBJ/STL/PLY mesh in a folder.
@@ -31,14 +33,22 @@ the paper's layout), ``jaccard_per_view.png`` (the memory story: Jaccard against
 condition and model), ``examples.png`` (final-view input, prediction of every row and ground
 truth) and ``grasps.png`` (the planned grasp on the prediction and the re-grasp on the truth).
 
-Cost: the grasp planner dominates. The default run plans few candidates on few sequences so that
-it fits in 10 minutes on two cores; ``--full`` uses the planner's full candidate count. Stage
-timings are printed at the end (summed over sequences, so over all worker processes).
+Cost (see :data:`PRESETS`): with trained models the grasping and the F-score meshes take about
+equal shares. The default run evaluates 10 sequences per condition and split and grasps every
+single-object one with the planner's 24 principal-axis candidates (about 5 minutes on two
+cores); ``--quick`` is a one-minute smoke test; ``--full`` uses 50 sequences per cell and the
+planner's 64 candidates. Stage timings are printed at the end: each stage's seconds summed over
+sequences (so over all worker processes), and the wall time of the whole run.
+
+Determinism: scenes, surface samples and planner candidates are seeded from ``--seed`` and the
+sequence's identity, and every worker runs torch on one thread, so the numbers do not depend on
+``--workers``.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
 import sys
@@ -95,6 +105,46 @@ OBJECT_TABLE_CONDITION = "camera_pan"
 NAMED_OBJECTS_TABLE = "named"
 FOLDER_TABLE = "objects"
 MAIN_TABLE = "main"
+#: The paper's Tables I–III, (train, test) per condition in PAPER_ORDER; None = N/A there.
+_PAPER_ROWS = {
+    "jaccard": {
+        "single_view": (None, None, (0.91, 0.88), None, (0.90, 0.87)),
+        "mvp": ((0.90, 0.87), (0.80, 0.78), (0.96, 0.90), (0.97, 0.95), (0.93, 0.89)),
+        "mvt": ((0.90, 0.86), (0.80, 0.78), (0.95, 0.90), (0.97, 0.95), (0.92, 0.88)),
+        "lstm": ((0.90, 0.86), (0.80, 0.77), (0.93, 0.90), (0.97, 0.95), (0.92, 0.88)),
+        "mvp3": ((0.89, 0.86), (0.78, 0.76), (0.92, 0.90), (0.95, 0.94), (0.91, 0.88)),
+        "mvp6": ((0.89, 0.87), (0.79, 0.77), (0.93, 0.90), (0.96, 0.95), (0.92, 0.88)),
+    },
+    "fscore_1": {
+        "single_view": (None, None, (0.90, 0.87), None, (0.90, 0.87)),
+        "mvp": ((0.90, 0.86), (0.75, 0.71), (0.95, 0.90), (0.97, 0.95), (0.92, 0.88)),
+        "mvt": ((0.90, 0.85), (0.75, 0.71), (0.94, 0.90), (0.97, 0.95), (0.91, 0.87)),
+        "lstm": ((0.90, 0.85), (0.75, 0.69), (0.92, 0.90), (0.97, 0.95), (0.92, 0.87)),
+        "mvp3": ((0.89, 0.86), (0.72, 0.70), (0.91, 0.88), (0.95, 0.94), (0.91, 0.87)),
+        "mvp6": ((0.88, 0.85), (0.74, 0.72), (0.92, 0.90), (0.96, 0.95), (0.91, 0.88)),
+    },
+    "joint_error_deg": {
+        "single_view": (None, None, (4.57, 4.62), None, None),
+        "mvp": ((4.10, 4.16), (3.80, 3.94), (3.75, 3.83), None, None),
+        "mvt": ((4.14, 4.19), (3.85, 3.98), (3.79, 3.84), None, None),
+        "lstm": ((4.15, 4.22), (3.88, 3.97), (3.82, 3.89), None, None),
+        "mvp3": ((4.23, 4.28), (4.00, 4.09), (3.98, 4.05), None, None),
+        "mvp6": ((4.18, 4.22), (3.94, 3.99), (3.92, 3.98), None, None),
+    },
+}
+PAPER_TABLES: dict = {
+    metric: {
+        row: {
+            c: {"train": None if v is None else v[0], "test": None if v is None else v[1]}
+            for c, v in zip(PAPER_ORDER, values, strict=True)
+        }
+        for row, values in rows.items()
+    }
+    for metric, rows in _PAPER_ROWS.items()
+}
+"""The paper's numbers in the layout of results.json's ``tables`` (for side-by-side reports)."""
+#: Decision threshold of a checkpoint that does not store one.
+DEFAULT_THRESHOLD = 0.5
 
 
 @dataclass(frozen=True)
@@ -107,12 +157,19 @@ class Preset:
     grasp_count: int  # sequences per (condition, split) that are also grasped
 
 
+#: Sizes per preset, from measured costs on one core (process time): generating a sequence
+#: 0.2–0.45 s; running the six models over it 0.2 s; Jaccard + F-score of 12 views × 7 rows
+#: 1.7 s; one joint error (collision model of the completion, plan, two re-grasps)
+#: ≈ 0.15 s + 0.02 s per planner candidate, × 7 rows per grasped sequence.
 PRESETS: dict[str, Preset] = {
-    # ≈ 2–3 minutes on two cores: a smoke test of the whole chain.
-    "quick": Preset(count=2, named=4, candidates=8, grasp_count=1),
-    # ≤ 10 minutes on two cores (the command with no arguments).
-    "default": Preset(count=6, named=10, candidates=12, grasp_count=3),
-    # The paper-sized run: hours on two cores, use --workers on a bigger machine.
+    # ≈ 90 core-seconds: a smoke test of the whole chain (about a minute on two cores).
+    "quick": Preset(count=2, named=3, candidates=8, grasp_count=2),
+    # ≈ 600 core-seconds, about 5 minutes on two cores: the command with no arguments.
+    # 100 sequences (10 per condition and split), all 60 single-object ones grasped with
+    # 24 candidates (the planner's 24 principal-axis poses), and the 10 named objects.
+    "default": Preset(count=10, named=10, candidates=24, grasp_count=10),
+    # ≈ 4,500 core-seconds (about 40 minutes on two cores; use --workers on a bigger machine):
+    # 50 sequences per cell and the planner's full 64 candidates.
     "full": Preset(count=50, named=10, candidates=64, grasp_count=50),
 }
 
@@ -228,6 +285,20 @@ def registered_fusion(
 # ------------------------------------------------------------------------------ per-sequence work
 
 
+@contextlib.contextmanager
+def _quiet_stdout():
+    """Silence file descriptor 1 (pybullet's C code prints "argv[0]=" on every connect)."""
+    sys.stdout.flush()
+    saved = os.dup(1)
+    try:
+        with open(os.devnull, "w") as null:
+            os.dup2(null.fileno(), 1)
+            yield
+    finally:
+        os.dup2(saved, 1)
+        os.close(saved)
+
+
 def _key_seed(*parts: object) -> int:
     """A stable 32-bit seed from the job's identity (same seed → same samples and grasps)."""
     return zlib.crc32("/".join(map(str, parts)).encode())
@@ -254,15 +325,20 @@ class Evaluator:
         from completion.render import Renderer
 
         self.settings = settings
-        self.renderer = Renderer()
+        with _quiet_stdout():
+            self.renderer = Renderer()
         self.models = {}
         self.thresholds: dict[str, float] = {}
         for name, path in settings.model_paths:
             if name not in settings.rows:
                 continue
             model = load_model(path).eval()
-            stored = read_checkpoint(path).get("threshold")
-            self.thresholds[name] = float(getattr(model, "threshold", stored or 0.5) or 0.5)
+            # the validation-chosen decision threshold: an attribute of the loaded model, or the
+            # checkpoint's "threshold" entry, else 0.5
+            threshold = getattr(model, "threshold", None)
+            if threshold is None:
+                threshold = read_checkpoint(path).get("threshold", DEFAULT_THRESHOLD)
+            self.thresholds[name] = float(threshold)
             self.models[name] = model
         self.thresholds[FUSION] = 0.5  # a bool grid: meshed between empty and occupied
         self._torch = torch
@@ -447,7 +523,7 @@ def run_jobs(settings: Settings, jobs: list[Job], *, progress: bool = True) -> l
 
             # spawn: torch and pybullet do not survive fork with live threads/clients.
             with ProcessPoolExecutor(
-                settings.workers,
+                min(settings.workers, len(jobs)),
                 mp_context=mp.get_context("spawn"),
                 initializer=_init_worker,
                 initargs=(settings,),
@@ -560,6 +636,7 @@ def build_results(results: list[SequenceResult], settings: Settings, wall: dict)
         "objects_dir": None,
         "per_object": per_object_records(results, settings),
         "config": _config_dict(settings),
+        "paper_tables": PAPER_TABLES,
         "timings_s": {
             "stages_summed_over_sequences": {k: round(v, 2) for k, v in asdict(timings).items()},
             "wall": {k: round(v, 2) for k, v in wall.items()},
@@ -610,11 +687,16 @@ def _best(values: list[float | None], metric: str) -> float | None:
     return max(vals) if HIGHER_IS_BETTER[metric] else min(vals)
 
 
-def markdown_table(results: dict, metric: str) -> str:
-    """One of the paper's tables: rows = models, columns = condition × (train, test)."""
-    tables = results["tables"][metric]
+def markdown_table(tables: dict, metric: str, *, conditions: Iterable[str] | None = None) -> str:
+    """One of the paper's tables: rows = models, columns = condition × (train, test).
+
+    tables : row -> condition -> split -> value (``results["tables"][metric]``, or
+    :data:`PAPER_TABLES` ``[metric]``); conditions default to those of the first row.
+    """
     rows = list(tables)
-    conditions = [c for c in PAPER_ORDER if c in next(iter(tables.values()), {})]
+    if conditions is None:
+        conditions = next(iter(tables.values()), {})
+    conditions = [c for c in PAPER_ORDER if c in set(conditions)]
     if metric == "joint_error_deg":
         conditions = [c for c in conditions if c in SINGLE_OBJECT_CONDITIONS]
     header = (
@@ -627,11 +709,12 @@ def markdown_table(results: dict, metric: str) -> str:
     for row in rows:
         cells = []
         for c in conditions:
-            for s in ("train", "test"):
-                v = tables[row][c].get(s)
-                best = _best([tables[r][c].get(s) for r in learned], metric)
+            for split in ("train", "test"):
+                v = tables[row].get(c, {}).get(split)
+                best = _best([tables[r].get(c, {}).get(split) for r in learned], metric)
                 text = _fmt(v, metric)
-                if v is not None and row != FUSION and v == best and len(learned) > 1:
+                tie = v is not None and best is not None and round(v, 2) == round(best, 2)
+                if tie and row != FUSION and len(learned) > 1:
                     text = f"**{text}**"
                 cells.append(text)
         lines.append(f"| {ROW_LABELS[row]} | " + " | ".join(cells) + " |")
@@ -670,7 +753,16 @@ def markdown_report(results: dict) -> str:
         "",
     ]
     for metric in METRICS:
-        parts += [f"## {METRIC_TITLES[metric]}", "", markdown_table(results, metric), ""]
+        ours = results["tables"][metric]
+        parts += [f"## {METRIC_TITLES[metric]}", "", markdown_table(ours, metric), ""]
+        if metric in PAPER_TABLES:
+            conditions = next(iter(ours.values()), {})
+            parts += [
+                "The paper's numbers for the same cells (— = N/A in the paper):",
+                "",
+                markdown_table(PAPER_TABLES[metric], metric, conditions=conditions),
+                "",
+            ]
     counts = results["counts"]
     lines = []
     for row, per_cond in counts.items():
@@ -733,12 +825,33 @@ def _unpack(bits: np.ndarray) -> np.ndarray:
     return np.unpackbits(bits)[: G.GRID_SIZE**3].astype(bool).reshape(G.GRID_SHAPE)
 
 
+def _projections(occupancy: np.ndarray) -> np.ndarray:
+    """(40, 81) float image, NaN where empty: the grid seen from the camera and from its side.
+
+    Left: along the camera's +z (rows = y, columns = x), brightness = nearness of the first
+    occupied voxel. Right: along +x (rows = y, columns = z, depth to the right), brightness =
+    nearness to that side. Shows how far behind the visible surface a completion reaches.
+    """
+    n = G.GRID_SIZE
+    depth = np.arange(n, dtype=np.float64)
+
+    def first_hit(occ: np.ndarray) -> np.ndarray:  # occ (rows, cols, depth)
+        hit = occ.any(axis=-1)
+        first = np.where(hit, np.argmax(occ, axis=-1), 0)
+        return np.where(hit, 1.0 - depth[first] / n, np.nan)
+
+    front = first_hit(occupancy.transpose(1, 0, 2))  # (y, x) along z
+    side = first_hit(occupancy.transpose(1, 2, 0))  # (y, z) along x
+    return np.concatenate([front, np.full((n, 1), np.nan), side], axis=1)
+
+
 def write_figures(results: dict, raw: list[SequenceResult], out: Path) -> list[Path]:
     """jaccard_per_view.png, examples.png and grasps.png (when there are grasps)."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    from matplotlib.ticker import MaxNLocator
 
     written = []
     per_view = results["per_view_jaccard"]
@@ -756,6 +869,7 @@ def write_figures(results: dict, raw: list[SequenceResult], out: Path) -> list[P
                 ax.plot(range(1, len(ys) + 1), ys, style, marker=".", label=ROW_LABELS[row])
             ax.set_title(CONDITION_LABELS[c])
             ax.set_xlabel("view")
+            ax.xaxis.set_major_locator(MaxNLocator(integer=True))
             ax.grid(alpha=0.3)
         axes[0][0].set_ylabel("Jaccard (test)")
         axes[0][-1].legend(fontsize=7, loc="lower right")
@@ -769,7 +883,12 @@ def write_figures(results: dict, raw: list[SequenceResult], out: Path) -> list[P
     if examples:
         row_names = list(examples[0].example["rows"])
         cols = ["input", "ground truth", *row_names]
-        fig = plt.figure(figsize=(1.9 * len(cols), 2.0 * len(examples)))
+        fig, axes = plt.subplots(
+            len(examples),
+            len(cols),
+            figsize=(1.9 * len(cols), 1.2 * len(examples) + 0.6),
+            squeeze=False,
+        )
         for i, r in enumerate(examples):
             ex = r.example
             grids = [
@@ -778,33 +897,20 @@ def write_figures(results: dict, raw: list[SequenceResult], out: Path) -> list[P
                 *[_unpack(ex["rows"][n]) for n in row_names],
             ]
             for j, (title, occ) in enumerate(zip(cols, grids, strict=True)):
-                ax = fig.add_subplot(
-                    len(examples), len(cols), i * len(cols) + j + 1, projection="3d"
-                )
-                pts = np.argwhere(occ)
-                if len(pts) > 2500:
-                    pts = pts[np.random.default_rng(0).choice(len(pts), 2500, replace=False)]
-                if len(pts):
-                    # camera axes: x right, y down, z forward; draw y up for a natural view
-                    ax.scatter(pts[:, 0], pts[:, 2], -pts[:, 1], s=1, c=pts[:, 2], cmap="viridis")
-                ax.set_xlim(0, 40)
-                ax.set_ylim(0, 40)
-                ax.set_zlim(-40, 0)
-                ax.set_axis_off()
-                ax.view_init(elev=20, azim=-60)
+                ax = axes[i][j]
+                ax.imshow(_projections(occ), cmap="viridis", vmin=0.0, vmax=1.0)
+                ax.set_xticks([])
+                ax.set_yticks([])
                 if i == 0:
                     ax.set_title(ROW_LABELS.get(title, title), fontsize=8)
                 if j == 0:
-                    ax.text2D(
-                        -0.1,
-                        0.5,
-                        f"{r.job.table}\n{CONDITION_LABELS[r.job.condition]}",
-                        transform=ax.transAxes,
-                        fontsize=7,
-                        rotation=90,
-                        va="center",
-                    )
-        fig.suptitle("Final view: input, ground truth and each row's completion", fontsize=9)
+                    ax.set_ylabel(f"{r.job.table}\n{CONDITION_LABELS[r.job.condition]}", fontsize=7)
+        fig.suptitle(
+            "Final view of each example: front (as the camera sees it) | side (depth to the "
+            "right); brighter = nearer",
+            fontsize=8,
+        )
+        fig.tight_layout()
         path = out / "examples.png"
         fig.savefig(path, dpi=100)
         plt.close(fig)
@@ -818,6 +924,8 @@ def write_figures(results: dict, raw: list[SequenceResult], out: Path) -> list[P
 
 #: Rows shown in grasps.png (the first ones present): the paper's model, a baseline, the reference.
 GRASP_FIGURE_ROWS: tuple[str, ...] = ("mvp", "single_view", FUSION)
+#: Examples shown in grasps.png (main table first: camera pan, hiding, reveal).
+GRASP_FIGURE_EXAMPLES = 3
 
 
 def _figure_rows(rows: list[str]) -> list[str]:
@@ -846,7 +954,7 @@ def _grasp_figure(raw: list[SequenceResult], out: Path, plt) -> Path | None:
     from grasp import metrics
     from grasp.render import render_grasp
 
-    shown = [r for r in raw if r.example is not None and r.grasps]
+    shown = [r for r in raw if r.example is not None and r.grasps][:GRASP_FIGURE_EXAMPLES]
     if not shown:
         return None
     rows = _figure_rows(list(shown[0].grasps))
@@ -884,7 +992,8 @@ def _grasp_figure(raw: list[SequenceResult], out: Path, plt) -> Path | None:
                     ex["grid_to_camera"],
                     threshold=ex["thresholds"][name],
                 )
-            image = render_grasp(mesh, _grasp_result(g[side]), width=240, height=240)[0]
+            with _quiet_stdout():
+                image = render_grasp(mesh, _grasp_result(g[side]), width=240, height=240)[0]
             ax.imshow(image)
     fig.suptitle(
         "Grasp planned on the completion, and the same pre-grasp re-run on the truth", fontsize=9
@@ -1062,8 +1171,10 @@ def settings_from_args(args: argparse.Namespace, parser: argparse.ArgumentParser
     if args.objects is not None:
         try:
             objects = tuple(objects_in_folder(args.objects))
+            for object_id in objects:
+                load_object(object_id)  # unreadable meshes fail here, not in a worker
         except ValueError as exc:
-            parser.error(str(exc))
+            parser.error(f"--objects: {exc}")
     workers = args.workers
     if workers is None:
         workers = (

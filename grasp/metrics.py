@@ -284,7 +284,6 @@ def grasp_joint_error(
         return JointError(None, reason="empty completion: no surface to plan on")
     from grasp.autograsp import PREGRASP_BACKOFF_M, joint_error_deg, regrasp
     from grasp.planner import plan
-
     from grasp.sim import CollisionScene, check_mesh
 
     back = PREGRASP_BACKOFF_M if backoff is None else float(backoff)

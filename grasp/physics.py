@@ -1,42 +1,60 @@
 """Physics check of a grasp: close the BarrettHand on the true object in pybullet, lift, shake.
 
 :func:`lift_test` replays a planned :class:`grasp.autograsp.GraspResult` in rigid-body dynamics and
-says whether the object stays in the hand. One trial, in its own DIRECT pybullet client:
+says whether the object stays in the hand. One trial, in its own DIRECT pybullet client
+(:class:`DynamicWorld`; no module-global client):
 
 1. **Object**: the mesh as a dynamic body. Mass and inertia at ``density`` (default
-   :data:`DENSITY_KG_M3` = 500 kg/m³, a solid between hollow plastic and wood), from the mesh when
-   it is a closed volume, otherwise from its convex pieces. Collision: the convex hull when the mesh
-   is convex, else pybullet's V-HACD decomposition (:func:`convex_decomposition`), cached per mesh.
-   Optionally a table under it (``table=True``; the scenes here float the object, so off by
-   default).
-2. **Hand**: the URDF from :mod:`hands.barrett.urdf`, free base, carried by a fixed constraint to
-   the world whose target pose is moved every step (``changeConstraint``, max force
-   ``hand_force``), so contacts see the hand's real velocity. Placed open, at the grasp's spread,
-   ``pregrasp_backoff`` behind the grasp pose along its approach axis, then moved to the grasp pose.
-3. **Close**: every finger DOF rises at ``close_speed`` with J2 = DOF and J3 = DOF/3 (position
-   control, torque limited). A controller watches each proximal joint: when it lags its target
-   while barely moving (stalled on the object) the finger breaks away, its proximal joint now
-   presses with its torque limit and the distal target keeps following DOF/3; a stalled distal
-   stops the finger (then both joints press with their limits). Gravity is off while the hand
-   approaches and closes (the object floats where the planner saw it) unless there is a table.
-4. **Load**: gravity on, settle, lift the hand by ``lift`` along world +z (smooth profile), hold,
-   then ``shake_count`` shakes along seeded random directions (out and back, one cycle each), hold.
+   :data:`DENSITY_KG_M3` = 500 kg/m³, solid), from the mesh when it is a closed volume, otherwise
+   from its convex pieces. Collision: the convex hull when the mesh is convex, else pybullet's
+   V-HACD decomposition (:func:`convex_decomposition`), cached per mesh in
+   ``~/.cache/mvp-grasp/convex``. pybullet pads a hull by its 1 mm margin, so the pieces are
+   shrunk by as much and the collision surface is the mesh's (a test checks it against the
+   planner's contact). Without a table (the scenes float the object) a weak support, a constraint
+   of at most the object's weight, keeps it from drifting while gravity is off and the hand closes;
+   with ``table=True`` it stands on a table with gravity on throughout.
+2. **Hand**: the URDF from :mod:`hands.barrett.urdf` (implicit cylinders, so the palm is not padded
+   either), free base, carried by a fixed constraint to the world whose target is moved every step
+   (``changeConstraint``, at most ``hand_force``): the hand base is driven dynamically, so contacts
+   see its real velocity. The carriage only translates; the palm keeps the grasp's orientation.
+   Finger–finger and finger–palm collisions are off, as in autograsp.
+   It starts open, at the grasp's spread, ``pregrasp_backoff`` behind the palm pose along the
+   approach axis (:func:`grasp.autograsp.pregrasp_pose`) and moves to the planned pose, or, with
+   ``approach="contact"``, until it first touches the object.
+3. **Close**: every finger DOF rises at ``close_speed``; J2 = DOF and J3 = DOF/3 under position
+   control with torque limits. The controller (:meth:`DynamicWorld.drive_fingers`) watches each
+   proximal joint's lag and velocity: stalled while its distal still moves is a proximal contact,
+   so the finger breaks away (J2 keeps pressing with its torque limit, the distal target keeps
+   following DOF/3 until it stalls or the DOF tops out); stalled together with the distal stops
+   the finger (both joints press with their limits). Closing ends when every finger has stopped,
+   plus ``close_settle``.
+4. **Load**: where the object sits in the palm frame is the reference. The support goes, gravity
+   comes on; settle, lift the hand by ``lift`` along world +z (cosine profile), hold, then
+   ``shake_count`` shakes along seeded random directions (out and back, one cycle each), hold.
 
-Success: the object's centre of mass never moves more than ``hold_tolerance`` (2 cm) from where it
-sat in the hand at the end of closing, measured in the palm frame, from gravity-on to the end.
+Success: the object's centre of mass never moves more than ``hold_tolerance`` (2 cm) from the
+reference, in the palm frame, from gravity-on to the end. The simulation stops early once the
+object is ``drop_distance`` (5 cm) away.
 
-Numbers (:class:`LiftSettings`, one place; the hand's facts are in ``shared/BARRETT.md``):
+Numbers (:class:`LiftSettings`, in one place; the hand's facts are in ``shared/BARRETT.md``):
 
-- Time step 1/240 s, 100 solver iterations, deterministic overlapping pairs: the same inputs and
+- Time step 1/240 s, 100 solver iterations, deterministic overlapping pairs, friction anchors (they
+  stop the slow creep of a held object that pybullet shows without them). The same inputs and
   seed give bit-identical results on one machine.
-- Torque limits: J3 0.75 N·m (15 N at the 5 cm fingertip lever, the BH8-28x active fingertip
-  force; Barrett's distal torque sensor spans ±1 N·m for "2 kg at the fingertip"); J2 1.0 N·m
-  (the same motor through 125:1 instead of 93.75:1, i.e. 4/3 of J3); spread 2.0 N·m (chosen; the
-  worm-driven spread does not back-drive). Finger DOF speed 1 rad/s (the real hand closes its
-  140° in about 1 s; slower keeps the first touch from batting the floating object away).
+- Torque limits: J3 1.0 N·m, from the BH8-series manual's "2 kg at the fingertip is about 20 N at
+  5 cm = 1 N·m" (the range of its distal torque sensor); the hand motor's 0.0367 N·m continuous
+  torque through the 93.75:1 distal drive and a worm of about 30 % efficiency gives the same. J2
+  4/3 N·m: the same motor through 125:1 instead of 93.75:1. Spread 2.0 N·m (chosen; the
+  worm-driven spread does not back-drive). Finger DOF speed 1 rad/s (the real hand closes its 140°
+  in about 1 s; slower keeps the first touch from batting the object away). After a finger stops,
+  its joints keep pressing with their limits (standing in for the non-back-drivable worm drives
+  holding the squeeze).
 - Friction: hand links get ``friction`` (default μ = 1.0, rubber, :data:`grasp.quality.MU_RUBBER`)
-  and the object 1.0; pybullet multiplies the two, so a hand–object contact has exactly μ.
+  and the object 1.0; pybullet multiplies the two, so a hand–object contact has exactly μ. No
+  rolling or spinning friction.
 - Shake: 4 cycles of 3 cm at 3 Hz, peak acceleration 2π²f²A ≈ 5.3 m/s² (about 0.5 g).
+- Sim time: 0.5 s approach, up to 3.5 s closing, 3.1 s loaded (settle 0.25, lift 1.0, hold 0.25,
+  shakes 1.33, hold 0.25); about 1–2 s of wall time on one core.
 
 This module must not import torch (DESIGN.md §2).
 """
@@ -49,9 +67,10 @@ import logging
 import math
 import os
 import tempfile
-from collections.abc import Iterator, Sequence
-from dataclasses import asdict, dataclass, field
+from collections.abc import Callable, Iterator, Sequence
+from dataclasses import asdict, dataclass
 from pathlib import Path
+from typing import Literal, get_args
 
 import numpy as np
 import pybullet
@@ -66,18 +85,22 @@ from grasp.sim import JointInfo, check_mesh, check_pose
 from hands.barrett import BH8_282, FINGERS, JOINT_NAMES, BarrettParams
 
 __all__ = [
+    "APPROACHES",
     "DENSITY_KG_M3",
     "HOLD_TOLERANCE_M",
+    "DynamicWorld",
     "LiftResult",
     "LiftSettings",
     "convex_decomposition",
     "lift_test",
     "mass_properties",
+    "read_pieces",
 ]
 
 log = logging.getLogger(__name__)
 
-#: Density of the object (kg/m³): 500, between hollow plastic ware and solid wood.
+#: Density of the object (kg/m³): 500, a solid between plastic ware and wood. Objects are solid, so
+#: big ones are heavy (an 18 cm ball weighs 1.5 kg); pass ``density`` for lighter ones.
 DENSITY_KG_M3 = 500.0
 #: The object is held if its centre of mass stays this close to where it sat in the hand.
 HOLD_TOLERANCE_M = 0.02
@@ -89,6 +112,11 @@ VHACD_OPTIONS = {
     "minVolumePerCH": 0.0001,
 }
 _CACHE_VERSION = "1"
+#: How the hand reaches the grasp pose (see :func:`lift_test`).
+Approach = Literal["planned", "contact"]
+APPROACHES: tuple[str, ...] = get_args(Approach)
+#: Standard gravity (m/s²), along world −z.
+GRAVITY = 9.81
 #: pybullet pads each convex hull of a mesh shape by this collision margin (its default, measured:
 #: a hull's surface lies 1 mm outside its vertices); the pieces are shrunk by as much.
 MESH_MARGIN_M = 0.001
@@ -104,10 +132,11 @@ class LiftSettings:
     hand_force: float = 1000.0  # max force of the constraint carrying the hand (N)
     pregrasp_backoff: float = 0.05  # start this far behind the grasp pose, hand open (m)
     approach_speed: float = 0.10  # m/s
+    overtravel: float = 0.05  # a guarded approach goes on this far past the planned pose (m)
     # fingers
     close_speed: float = 1.0  # finger DOF speed while closing (rad/s)
-    proximal_torque: float = 1.0  # J2 torque limit (N·m)
-    distal_torque: float = 0.75  # J3 torque limit (N·m)
+    proximal_torque: float = 4.0 / 3.0  # J2 torque limit (N·m): the J3 limit × 125 / 93.75
+    distal_torque: float = 1.0  # J3 torque limit (N·m): 20 N at a 5 cm fingertip lever
     spread_torque: float = 2.0  # spread torque limit (N·m)
     position_gain: float = 0.3  # pybullet POSITION_CONTROL gains
     velocity_gain: float = 1.0
@@ -127,6 +156,7 @@ class LiftSettings:
     hold_tolerance: float = HOLD_TOLERANCE_M
     drop_distance: float = 0.05  # stop simulating once the object is this far off (m)
     table_friction: float = 0.5
+    support_factor: float = 1.0  # without a table, a support of this × the weight holds the object
 
     def __post_init__(self) -> None:
         positive = ("time_step", "hand_force", "approach_speed", "close_speed", "lift_speed")
@@ -136,6 +166,8 @@ class LiftSettings:
             raise ValueError(f"LiftSettings: these must be positive, got {bad}")
         if self.drop_distance < self.hold_tolerance:
             raise ValueError("LiftSettings: drop_distance must be >= hold_tolerance")
+        if self.solver_iterations < 1 or self.stall_steps < 1 or self.shake_count < 0:
+            raise ValueError("LiftSettings: solver_iterations, stall_steps >= 1, shake_count >= 0")
 
     @property
     def shake_peak_accel(self) -> float:
@@ -184,6 +216,9 @@ class LiftResult:
         Object mass (kg).
     contacts : int
         Hand–object contact points at the end of closing.
+    travel : float
+        How far (m) the palm was moved along its approach axis from the pre-grasp pose before the
+        fingers closed (``pregrasp_backoff`` for the "planned" approach).
     """
 
     success: bool
@@ -199,6 +234,7 @@ class LiftResult:
     joints_deg: np.ndarray
     mass: float
     contacts: int
+    travel: float
 
     def as_dict(self) -> dict:
         """JSON-ready dictionary (lists instead of arrays)."""
@@ -368,13 +404,6 @@ def _to_pybullet(pose: np.ndarray) -> tuple[list[float], list[float]]:
     return pose[:3, 3].tolist(), Rotation.from_matrix(pose[:3, :3]).as_quat().tolist()
 
 
-def _from_pybullet(position, quaternion) -> np.ndarray:
-    pose = np.eye(4)
-    pose[:3, :3] = Rotation.from_quat(quaternion).as_matrix()
-    pose[:3, 3] = position
-    return pose
-
-
 def _invert(pose: np.ndarray) -> np.ndarray:
     out = np.eye(4)
     out[:3, :3] = pose[:3, :3].T
@@ -389,7 +418,7 @@ class _Finger:
     prox: int  # pybullet joint indices
     dist: int
     dof: float = 0.0  # commanded DOF (motor angle in J2 units)
-    mode: str = "coupled"  # coupled → breakaway → stopped, or limit
+    mode: str = "coupled"  # coupled → breakaway → stopped; coupled → stopped; coupled → limit
     stop: str = "timeout"
     prox_count: int = 0  # consecutive stalled steps
     dist_count: int = 0
@@ -405,19 +434,21 @@ class DynamicWorld:
     Parameters
     ----------
     mesh : trimesh.Trimesh
-        The object, world frame, metres; it starts where the mesh is.
+        The object, world frame, metres; it starts where the mesh is, at rest.
     friction : float
         Lateral friction of the hand links (the object gets 1.0; pybullet multiplies them).
     density : float
         Object density (kg/m³).
     table : bool
-        Put a static table top under the object's lowest point.
+        Put a static table top (1 m square) under the object's lowest point.
     settings : LiftSettings
     params : BarrettParams
     cache_dir : path or None
         Where the convex decomposition is cached (:func:`convex_decomposition`).
 
-    Use as a context manager (or call :meth:`close`) to disconnect the client.
+    The hand is carried by a fixed constraint to the world (:meth:`place_hand`, :meth:`move_hand`)
+    and its fingers follow the Barrett closing controller (:meth:`drive_fingers`). Gravity starts
+    off; :meth:`gravity` switches it. Use as a context manager (or call :meth:`close`).
     """
 
     def __init__(
@@ -443,23 +474,26 @@ class DynamicWorld:
         principal, axes = np.linalg.eigh(inertia)
         if np.linalg.det(axes) < 0:
             axes[:, 2] *= -1.0
-        # body frame: centre of mass, principal axes; the mesh sits in it at body_to_mesh
-        self._body_in_mesh = np.eye(4)
-        self._body_in_mesh[:3, :3], self._body_in_mesh[:3, 3] = axes, com
+        # the object's body frame: centre of mass and principal axes, placed in the mesh frame
+        body = np.eye(4)
+        body[:3, :3], body[:3, 3] = axes, com
+        to_body = _invert(body)
+        self._home: tuple[list[float], list[float]] | None = None
+        self._constraint: int | None = None
+        self._support: int | None = None
 
         self.client = bullet_client.BulletClient(connection_mode=pybullet.DIRECT)
+        c = self.client
         try:
-            c = self.client
             c.setPhysicsEngineParameter(
                 fixedTimeStep=settings.time_step,
                 numSubSteps=0,
                 numSolverIterations=settings.solver_iterations,
                 deterministicOverlappingPairs=1,
             )
-            c.setGravity(0.0, 0.0, 0.0)
-            # pybullet pads every convex hull by its margin (MESH_MARGIN_M): shrink the pieces by
-            # as much so that the padded shape is the true one, and put them in the body frame
-            to_body = _invert(self._body_in_mesh)
+            self.gravity(False)
+            # pybullet pads every convex hull by MESH_MARGIN_M: shrink the pieces by as much so
+            # that the padded shape is the true one
             body_pieces = [
                 _shrink(piece, MESH_MARGIN_M) @ to_body[:3, :3].T + to_body[:3, 3]
                 for piece in pieces
@@ -468,7 +502,7 @@ class DynamicWorld:
                 shape_path = Path(tmp) / "object.obj"
                 _write_pieces(shape_path, body_pieces)
                 shape = c.createCollisionShape(pybullet.GEOM_MESH, fileName=str(shape_path))
-            position, orientation = _to_pybullet(self._body_in_mesh)
+            position, orientation = _to_pybullet(body)
             self.object_id = c.createMultiBody(
                 baseMass=self.mass,
                 baseCollisionShapeIndex=shape,
@@ -478,53 +512,56 @@ class DynamicWorld:
             c.changeDynamics(
                 self.object_id,
                 -1,
-                localInertiaDiagonal=np.maximum(principal, 1e-9).tolist(),
+                localInertiaDiagonal=np.maximum(principal, 1e-12).tolist(),
                 lateralFriction=1.0,
+                frictionAnchor=1,
                 spinningFriction=0.0,
                 rollingFriction=0.0,
                 linearDamping=0.0,
                 angularDamping=0.0,
             )
-            self.table_id = None
+            self.table_id: int | None = None
             if table:
-                top = float(mesh.bounds[0, 2])
                 half = [0.5, 0.5, 0.025]
                 box = c.createCollisionShape(pybullet.GEOM_BOX, halfExtents=half)
-                centre = [*np.asarray(mesh.bounds).mean(axis=0)[:2].tolist(), top - half[2]]
-                self.table_id = c.createMultiBody(0.0, box, basePosition=centre)
+                centre = np.asarray(mesh.bounds).mean(axis=0)
+                centre[2] = float(mesh.bounds[0, 2]) - half[2]
+                self.table_id = c.createMultiBody(0.0, box, basePosition=centre.tolist())
                 c.changeDynamics(self.table_id, -1, lateralFriction=settings.table_friction)
             with tempfile.TemporaryDirectory() as tmp:
                 urdf = Path(tmp) / "barrett.urdf"
                 urdf.write_text(urdf_string(params))
+                # implicit cylinders: pybullet would otherwise pad the palm's hull by its margin
                 self.hand_id = c.loadURDF(
                     str(urdf),
                     useFixedBase=False,
                     flags=pybullet.URDF_USE_INERTIA_FROM_FILE | pybullet.URDF_USE_IMPLICIT_CYLINDER,
                 )
+            self.joints: dict[str, JointInfo] = {}
+            for index in range(c.getNumJoints(self.hand_id)):
+                info = c.getJointInfo(self.hand_id, index)
+                record = JointInfo(
+                    index, info[1].decode(), info[2], info[8], info[9], info[12].decode()
+                )
+                self.joints[record.name] = record
+            for link in range(-1, c.getNumJoints(self.hand_id)):
+                c.changeDynamics(
+                    self.hand_id,
+                    link,
+                    lateralFriction=float(friction),
+                    frictionAnchor=1,
+                    spinningFriction=0.0,
+                    rollingFriction=0.0,
+                    jointDamping=0.0,
+                    linearDamping=0.0,
+                    angularDamping=0.0,
+                )
+            # the base of a pybullet body is its inertial frame, not the URDF palm frame
+            inertial = c.getDynamicsInfo(self.hand_id, -1)
+            self._palm_in_base = c.invertTransform(inertial[3], inertial[4])
         except Exception:
-            self.client.disconnect()
+            c.disconnect()
             raise
-        self.joints: dict[str, JointInfo] = {}
-        for index in range(c.getNumJoints(self.hand_id)):
-            info = c.getJointInfo(self.hand_id, index)
-            record = JointInfo(
-                index, info[1].decode(), info[2], info[8], info[9], info[12].decode()
-            )
-            self.joints[record.name] = record
-        for link in range(-1, c.getNumJoints(self.hand_id)):
-            c.changeDynamics(
-                self.hand_id,
-                link,
-                lateralFriction=float(friction),
-                spinningFriction=0.0,
-                rollingFriction=0.0,
-                jointDamping=0.0,
-                linearDamping=0.0,
-                angularDamping=0.0,
-            )
-        local = c.getDynamicsInfo(self.hand_id, -1)
-        self._palm_to_base = _from_pybullet(local[3], local[4])
-        self._constraint: int | None = None
 
     # -- lifetime --------------------------------------------------------------------------------
     def close(self) -> None:
@@ -541,14 +578,21 @@ class DynamicWorld:
         self.close()
 
     # -- state -----------------------------------------------------------------------------------
-    def object_pose(self) -> np.ndarray:
-        """(4, 4) object body frame (centre of mass, principal axes) → world."""
-        return _from_pybullet(*self.client.getBasePositionAndOrientation(self.object_id))
+    def gravity(self, on: bool) -> None:
+        """Switch gravity (−z, :data:`GRAVITY` m/s²) on or off."""
+        self.client.setGravity(0.0, 0.0, -GRAVITY if on else 0.0)
 
-    def palm_pose(self) -> np.ndarray:
-        """(4, 4) actual palm → world."""
-        base = _from_pybullet(*self.client.getBasePositionAndOrientation(self.hand_id))
-        return base @ _invert(self._palm_to_base)
+    def object_in_palm(self) -> tuple[np.ndarray, np.ndarray]:
+        """The object's centre of mass (3,) and body axes (3, 3) in the actual palm frame."""
+        c = self.client
+        base = c.getBasePositionAndOrientation(self.hand_id)
+        palm = c.multiplyTransforms(*base, *self._palm_in_base)
+        inverse = c.invertTransform(*palm)
+        position, orientation = c.multiplyTransforms(
+            *inverse, *c.getBasePositionAndOrientation(self.object_id)
+        )
+        rotation = np.reshape(c.getMatrixFromQuaternion(orientation), (3, 3))
+        return np.asarray(position), rotation
 
     def joint_values_deg(self) -> np.ndarray:
         """(8,) joint angles in degrees, :data:`JOINT_NAMES` order."""
@@ -559,13 +603,50 @@ class DynamicWorld:
         """Number of hand–object contact points."""
         return len(self.client.getContactPoints(self.hand_id, self.object_id))
 
-    # -- the hand --------------------------------------------------------------------------------
-    def place_hand(self, palm_pose: np.ndarray, joints_deg: Sequence[float]) -> None:
-        """Put the hand at rest at ``palm_pose`` with the given joints, and hold it there."""
-        base = check_pose(palm_pose) @ self._palm_to_base
-        position, orientation = _to_pybullet(base)
+    def hold_object(self, force: float | None) -> None:
+        """Hold the object where it is by a constraint of at most ``force`` (N); None frees it.
+
+        It stands in for whatever supported the floating object before the grasp: it keeps the
+        object from drifting off when the palm touches it, and yields to the closing fingers.
+        """
         c = self.client
-        c.resetBasePositionAndOrientation(self.hand_id, position, orientation)
+        if self._support is not None:
+            c.removeConstraint(self._support)
+            self._support = None
+        if force is None:
+            return
+        position, orientation = c.getBasePositionAndOrientation(self.object_id)
+        self._support = c.createConstraint(
+            self.object_id,
+            -1,
+            -1,
+            -1,
+            pybullet.JOINT_FIXED,
+            [0.0, 0.0, 0.0],
+            [0.0, 0.0, 0.0],
+            position,
+            childFrameOrientation=orientation,
+        )
+        c.changeConstraint(self._support, maxForce=float(force))
+
+    # -- the hand --------------------------------------------------------------------------------
+    def place_hand(
+        self,
+        palm_pose: np.ndarray,
+        joints_deg: Sequence[float],
+        *,
+        offset: Sequence[float] = (0.0, 0.0, 0.0),
+    ) -> None:
+        """Put the hand at rest at ``palm_pose`` moved by ``offset`` (world, m), joints in degrees.
+
+        ``palm_pose`` becomes the carriage's home: :meth:`move_hand` translates from it.
+        """
+        c = self.client
+        position, orientation = _to_pybullet(check_pose(palm_pose))
+        base_in_palm = c.invertTransform(*self._palm_in_base)
+        self._home = c.multiplyTransforms(position, orientation, *base_in_palm)
+        start = (np.asarray(self._home[0]) + np.asarray(offset, dtype=np.float64)).tolist()
+        c.resetBasePositionAndOrientation(self.hand_id, start, self._home[1])
         c.resetBaseVelocity(self.hand_id, [0.0, 0.0, 0.0], [0.0, 0.0, 0.0])
         for name, value in zip(JOINT_NAMES, np.radians(joints_deg), strict=True):
             c.resetJointState(self.hand_id, self.joints[name].index, float(value), 0.0)
@@ -578,42 +659,60 @@ class DynamicWorld:
                 pybullet.JOINT_FIXED,
                 [0.0, 0.0, 0.0],
                 [0.0, 0.0, 0.0],
-                position,
-                childFrameOrientation=orientation,
+                start,
+                childFrameOrientation=self._home[1],
             )
-        self.move_hand(palm_pose)
+        self.move_hand(offset)
 
-    def move_hand(self, palm_pose: np.ndarray) -> None:
-        """Set the target palm pose of the constraint that carries the hand."""
-        position, orientation = _to_pybullet(palm_pose @ self._palm_to_base)
+    def move_hand(self, offset: Sequence[float]) -> None:
+        """Drive the hand toward its home pose translated by ``offset`` (world, m)."""
+        if self._home is None:
+            raise ValueError("place_hand must come before move_hand")
+        target = (np.asarray(self._home[0]) + np.asarray(offset, dtype=np.float64)).tolist()
         self.client.changeConstraint(
             self._constraint,
-            jointChildPivot=position,
-            jointChildFrameOrientation=orientation,
+            jointChildPivot=target,
+            jointChildFrameOrientation=self._home[1],
             maxForce=self.settings.hand_force,
         )
+
+    def hand_offset(self) -> np.ndarray:
+        """(3,) where the hand actually is, as a world translation from its home pose (m)."""
+        if self._home is None:
+            raise ValueError("place_hand must come before hand_offset")
+        position, _ = self.client.getBasePositionAndOrientation(self.hand_id)
+        return np.asarray(position) - np.asarray(self._home[0])
 
     def hold_spread(self, spread_deg: float) -> None:
         """Position-control both spread joints at ``spread_deg`` with the spread torque limit."""
         for name in ("f1_spread", "f2_spread"):
-            self.client.setJointMotorControl2(
-                self.hand_id,
-                self.joints[name].index,
-                pybullet.POSITION_CONTROL,
-                targetPosition=math.radians(spread_deg),
-                force=self.settings.spread_torque,
-                positionGain=self.settings.position_gain,
-                velocityGain=self.settings.velocity_gain,
+            self._position(
+                self.joints[name].index, math.radians(spread_deg), self.settings.spread_torque
             )
 
     def fingers(self) -> list[_Finger]:
-        """Fresh closing state for the three fingers (open)."""
+        """Fresh closing state of the three fingers (open)."""
         return [
             _Finger(self.joints[f"{f}_prox"].index, self.joints[f"{f}_dist"].index) for f in FINGERS
         ]
 
+    def hold_fingers_open(self, fingers: Sequence[_Finger]) -> None:
+        """Position-control every finger joint at 0 (open)."""
+        s = self.settings
+        for finger in fingers:
+            self._position(finger.prox, 0.0, s.proximal_torque)
+            self._position(finger.dist, 0.0, s.distal_torque)
+
     def drive_fingers(self, fingers: Sequence[_Finger]) -> None:
-        """One control step of the Barrett coupling and breakaway (see the module docstring)."""
+        """One control step of every finger: Barrett coupling and breakaway.
+
+        Coupled, the DOF rises at ``close_speed`` and J2 = DOF, J3 = DOF/3 under position control.
+        The controller watches the joints: a joint more than ``stall_lag`` behind its target and
+        slower than ``stall_speed`` for ``stall_steps`` steps has stalled. A stalled proximal whose
+        distal still moves breaks away: J2 then presses with its torque limit and the distal
+        target keeps following DOF/3. A stalled distal stops the finger: both joints press with
+        their limits. A finger whose DOF reaches its maximum untouched holds there ("limit").
+        """
         s, c = self.settings, self.client
         ratio = self.params.distal_ratio
         dof_max = math.radians(self.params.finger_dof_max_deg)
@@ -621,28 +720,28 @@ class DynamicWorld:
         for finger in fingers:
             (q2, v2, *_), (q3, v3, *_) = c.getJointStates(self.hand_id, [finger.prox, finger.dist])
             if finger.mode in ("coupled", "breakaway"):
-                # watch the joints: lagging and not moving means stalled on the object
                 if finger.mode == "coupled":
                     stalled = min(finger.dof, j2_max) - q2 > s.stall_lag and v2 < s.stall_speed
                     finger.prox_count = finger.prox_count + 1 if stalled else 0
-                stalled = ratio * finger.dof - q3 > s.stall_lag and v3 < s.stall_speed * ratio
+                stalled = ratio * finger.dof - q3 > s.stall_lag and v3 < ratio * s.stall_speed
                 finger.dist_count = finger.dist_count + 1 if stalled else 0
                 if finger.dist_count >= s.stall_steps:
                     finger.stop = "distal" if finger.mode == "coupled" else "breakaway-distal"
                     finger.mode = "stopped"
                 elif finger.mode == "coupled" and finger.prox_count >= s.stall_steps:
-                    finger.mode = "breakaway"
+                    if v3 < ratio * s.stall_speed:  # the distal is blocked too
+                        finger.stop, finger.mode = "distal", "stopped"
+                    else:
+                        finger.mode = "breakaway"
                 elif finger.dof >= dof_max:
                     finger.stop = "limit" if finger.mode == "coupled" else "breakaway-limit"
                     finger.mode = "limit" if finger.mode == "coupled" else "stopped"
                 else:
                     finger.dof = min(finger.dof + s.close_speed * s.time_step, dof_max)
-            # proximal: follow the DOF while coupled, else press with its torque limit
             if finger.mode in ("coupled", "limit"):
                 self._position(finger.prox, min(finger.dof, j2_max), s.proximal_torque)
             else:
                 self._press(finger.prox, s.proximal_torque)
-            # distal: follow DOF/3 until it stalls, then press
             if finger.mode == "stopped" and finger.stop != "breakaway-limit":
                 self._press(finger.dist, s.distal_torque)
             else:
@@ -670,20 +769,41 @@ class DynamicWorld:
         )
 
     def step(self) -> None:
+        """Advance the simulation by one ``time_step``."""
         self.client.stepSimulation()
 
 
 # -- the test --------------------------------------------------------------------------------------
 def _smooth(t: float) -> float:
-    """Cosine ease from 0 to 1 over t in [0, 1] (zero velocity at both ends)."""
+    """Cosine ease from 0 to 1 for t in [0, 1] (zero velocity at both ends)."""
     t = min(max(t, 0.0), 1.0)
     return 0.5 - 0.5 * math.cos(math.pi * t)
 
 
-def _shift(pose: np.ndarray, offset: np.ndarray) -> np.ndarray:
-    out = pose.copy()
-    out[:3, 3] += offset
-    return out
+def _schedule(
+    lift: float, shake: bool, directions: np.ndarray, s: LiftSettings
+) -> list[tuple[str, int, Callable[[float], np.ndarray]]]:
+    """The loaded phases: (name, steps, hand offset (3,) from the grasp pose at time t in it)."""
+    up = np.array([0.0, 0.0, 1.0])
+    lift_time = lift / s.lift_speed
+    phases: list[tuple[str, float, Callable[[float], np.ndarray]]] = [
+        ("settle", s.settle_time, lambda t: 0.0 * up),
+        ("lift", lift_time, lambda t: lift * _smooth(t / lift_time) * up),
+        ("lift", s.hold_time, lambda t: lift * up),
+    ]
+    if shake:
+        period = 1.0 / s.shake_frequency
+        for d in directions:
+            # out and back along d: A (1 − cos 2πft) / 2, peak acceleration 2π²f²A
+            phases.append(
+                (
+                    "shake",
+                    period,
+                    lambda t, d=d: lift * up + s.shake_amplitude * _smooth(2 * t / period) * d,
+                )
+            )
+        phases.append(("shake", s.hold_time, lambda t: lift * up))
+    return [(name, round(duration / s.time_step), f) for name, duration, f in phases]
 
 
 def lift_test(
@@ -696,6 +816,7 @@ def lift_test(
     friction: float = MU_RUBBER,
     density: float = DENSITY_KG_M3,
     table: bool = False,
+    approach: Approach = "planned",
     settings: LiftSettings = DEFAULT_SETTINGS,
     params: BarrettParams = BH8_282,
     cache_dir: str | Path | None = None,
@@ -705,10 +826,10 @@ def lift_test(
     Parameters
     ----------
     mesh : trimesh.Trimesh
-        The true object in world coordinates (metres), the same frame as ``grasp.palm_pose``.
+        The true object in world coordinates (metres), the frame of ``grasp.palm_pose``.
     grasp : GraspResult
-        A planned grasp (from :func:`grasp.autograsp.autograsp` or :func:`grasp.planner.plan`);
-        its palm pose and spread are used, the finger joints come from the simulated closing.
+        A planned grasp (:func:`grasp.autograsp.autograsp`, :func:`grasp.planner.plan`). Its palm
+        pose and spread are used; the finger joints come from the simulated closing.
     seed : int
         Seeds the shake directions. The same inputs and seed give the same result.
     lift : float
@@ -716,11 +837,18 @@ def lift_test(
     shake : bool
         Shake after the lift (``settings.shake_count`` cycles along seeded directions).
     friction : float
-        Hand–object Coulomb friction μ (default 1.0, rubber).
+        Hand–object Coulomb friction μ (default 1.0, rubber; BARRETT.md).
     density : float
         Object density in kg/m³ (default 500).
     table : bool
-        Put the object on a table (its lowest point); gravity is then on from the start.
+        Stand the object on a table (at its lowest point) with gravity on from the start, instead
+        of floating it on a weak support until the hand has closed.
+    approach : "planned" or "contact"
+        From the pre-grasp pose (``settings.pregrasp_backoff`` behind the palm pose, hand open),
+        "planned" moves the palm to ``grasp.palm_pose`` exactly (open loop, as for a grasp planned
+        on this mesh); "contact" moves along the approach axis until the hand first touches the
+        object, at most ``settings.overtravel`` past the planned pose (a guarded move, for a grasp
+        planned on another mesh, e.g. a predicted shape; DESIGN.md §7's re-approach).
     settings : LiftSettings
         Time step, torque limits, speeds, shake and tolerances.
     params : BarrettParams
@@ -731,7 +859,7 @@ def lift_test(
     Returns
     -------
     LiftResult
-        ``success``, ``displacement``, ``slip``, ``held_s`` and more; a grasp that closes on
+        ``success``, ``displacement``, ``slip``, ``held_s`` and more. A grasp that closes on
         nothing is a failed result, not an exception.
     """
     check_mesh(mesh)
@@ -739,16 +867,15 @@ def lift_test(
         raise ValueError(f"grasp must be a GraspResult, got {type(grasp).__name__}")
     if not (math.isfinite(lift) and lift >= 0.0):
         raise ValueError(f"lift must be a finite distance >= 0 (metres), got {lift}")
+    if approach not in APPROACHES:
+        raise ValueError(f"approach must be one of {APPROACHES}, got {approach!r}")
     s = settings
-    dt = s.time_step
-    rng = np.random.default_rng(seed)
-    directions = rng.normal(size=(s.shake_count, 3))
+    directions = np.random.default_rng(seed).normal(size=(s.shake_count, 3))
     directions /= np.linalg.norm(directions, axis=1, keepdims=True)
-
     palm = check_pose(grasp.palm_pose)
     spread = float(grasp.dofs_deg.spread)
-    start = pregrasp_pose(palm, s.pregrasp_backoff)
     open_joints = [spread, 0.0, 0.0, spread, 0.0, 0.0, 0.0, 0.0]
+    backoff = pregrasp_pose(palm, s.pregrasp_backoff)[:3, 3] - palm[:3, 3]  # (3,) world
 
     with DynamicWorld(
         mesh,
@@ -759,99 +886,81 @@ def lift_test(
         params=params,
         cache_dir=cache_dir,
     ) as world:
-        if table:
-            world.client.setGravity(0.0, 0.0, -9.81)
-        world.place_hand(start, open_joints)
+        world.gravity(table)
+        if not table:
+            world.hold_object(s.support_factor * world.mass * GRAVITY)
+        world.place_hand(palm, open_joints, offset=backoff)
         fingers = world.fingers()
-
-        def control() -> None:
+        # approach from the pre-grasp pose, hand open
+        if approach == "planned":  # to the planned palm pose, smooth start and stop
+            n = max(1, math.ceil(s.pregrasp_backoff / s.approach_speed / s.time_step))
+            path = [backoff * (1.0 - _smooth(i / n)) for i in range(1, n + 1)]
+        else:  # guarded: along the approach axis until the first touch, at constant speed
+            reach = s.pregrasp_backoff + s.overtravel
+            n = max(1, math.ceil(reach / s.approach_speed / s.time_step))
+            path = [backoff + reach * (i / n) * palm[:3, 2] for i in range(1, n + 1)]
+        for offset in path:
+            world.move_hand(offset)
+            world.hold_spread(spread)
+            world.hold_fingers_open(fingers)
+            world.step()
+            if approach == "contact" and world.n_contacts():
+                offset = world.hand_offset()  # stop where the hand is (it trails its target)
+                world.move_hand(offset)
+                break
+        travel = float(np.dot(offset - backoff, palm[:3, 2]))
+        # close
+        steps, settle_left = 0, round(s.close_settle / s.time_step)
+        while steps * s.time_step < s.close_timeout and settle_left > 0:
             world.hold_spread(spread)
             world.drive_fingers(fingers)
             world.step()
-
-        # approach: fingers held open
-        n = max(1, math.ceil(s.pregrasp_backoff / s.approach_speed / dt))
-        for i in range(1, n + 1):
-            world.move_hand(pregrasp_pose(palm, s.pregrasp_backoff * (1.0 - i / n)))
-            world.hold_spread(spread)
-            for finger in fingers:
-                world._position(finger.prox, 0.0, s.proximal_torque)
-                world._position(finger.dist, 0.0, s.distal_torque)
-            world.step()
-        # close
-        steps, settle_left = 0, round(s.close_settle / dt)
-        while steps * dt < s.close_timeout and settle_left > 0:
-            control()
             steps += 1
             if all(f.done for f in fingers):
                 settle_left -= 1
         joints_deg = world.joint_values_deg()
         contacts = world.n_contacts()
         stops = tuple(f.stop for f in fingers)
-
-        # reference: where the object sits in the hand
-        def in_palm() -> np.ndarray:
-            return _invert(world.palm_pose()) @ world.object_pose()
-
-        reference = in_palm()
-        world.client.setGravity(0.0, 0.0, -9.81)
-        lifted = _shift(palm, np.array([0.0, 0.0, lift]))
-        schedule = [("settle", s.settle_time, lambda t: palm)]
-        lift_time = lift / s.lift_speed
-        if lift > 0.0:
-            schedule.append(
-                ("lift", lift_time, lambda t: _shift(palm, [0, 0, lift * _smooth(t / lift_time)]))
-            )
-        schedule.append(("hold", s.hold_time, lambda t: lifted))
-        if shake:
-            period = 1.0 / s.shake_frequency
-            for d in directions:
-                schedule.append(
-                    (
-                        "shake",
-                        period,
-                        lambda t, d=d: _shift(
-                            lifted, d * s.shake_amplitude * _smooth(2 * t / period)
-                        ),
-                    )
-                )
-            schedule.append(("shake", s.hold_time, lambda t: lifted))
-
+        ref_position, ref_rotation = world.object_in_palm()
+        # load: gravity on, support gone
+        world.hold_object(None)
+        world.gravity(True)
         slip, held_s, phase, elapsed = 0.0, None, "held", 0.0
-        current = reference
-        for name, duration, target in schedule:
-            for i in range(round(duration / dt)):
-                world.move_hand(target((i + 1) * dt))
-                control()
-                elapsed += dt
-                current = in_palm()
-                distance = float(np.linalg.norm(current[:3, 3] - reference[:3, 3]))
+        position, rotation = ref_position, ref_rotation
+        for name, n_steps, target in _schedule(lift, shake, directions, s):
+            for i in range(n_steps):
+                world.move_hand(target((i + 1) * s.time_step))
+                world.hold_spread(spread)
+                world.drive_fingers(fingers)
+                world.step()
+                elapsed += s.time_step
+                position, rotation = world.object_in_palm()
+                distance = float(np.linalg.norm(position - ref_position))
                 slip = max(slip, distance)
                 if held_s is None and distance > s.hold_tolerance:
-                    held_s, phase = elapsed, "lift" if name == "hold" else name
+                    held_s, phase = elapsed, name
                 if distance > s.drop_distance:
                     break
             else:
                 continue
             break
 
-    offset = reference[:3, :3].T @ (current[:3, 3] - reference[:3, 3])
-    relative = reference[:3, :3].T @ current[:3, :3]
-    rotation = math.degrees(Rotation.from_matrix(relative).magnitude())
-    success = held_s is None
-    if success:
-        reason = "held through lift" + (" and shake" if shake else "")
+    moved = position - ref_position
+    relative = ref_rotation.T @ rotation
+    rotation_deg = math.degrees(Rotation.from_matrix(relative).magnitude())
+    if held_s is None:
+        reason = "held through the lift" + (" and the shakes" if shake else "")
     elif contacts == 0:
         reason = f"the hand closed on nothing; the object fell ({phase})"
     else:
-        reason = f"the object left the hand during {phase} after {held_s:.2f} s"
+        reason = f"the object left the hand during {phase}, {held_s:.2f} s after gravity came on"
     return LiftResult(
-        success=success,
+        success=held_s is None,
         reason=reason,
-        displacement=float(np.linalg.norm(offset)),
+        displacement=float(np.linalg.norm(moved)),
         slip=slip,
-        offset=offset,
-        rotation_deg=rotation,
+        offset=moved,
+        rotation_deg=rotation_deg,
         held_s=elapsed if held_s is None else held_s,
         total_s=elapsed,
         phase=phase,
@@ -859,6 +968,7 @@ def lift_test(
         joints_deg=joints_deg,
         mass=world.mass,
         contacts=contacts,
+        travel=travel,
     )
 
 
@@ -896,6 +1006,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--friction", type=float, default=MU_RUBBER, help="hand–object μ")
     parser.add_argument("--density", type=float, default=DENSITY_KG_M3, help="kg/m³")
     parser.add_argument("--table", action="store_true", help="object on a table")
+    parser.add_argument(
+        "--approach", choices=APPROACHES, default="planned", help="to the planned pose or to touch"
+    )
     args = parser.parse_args(argv)
     try:
         mesh = _load_mesh(args.mesh)
@@ -908,16 +1021,20 @@ def main(argv: list[str] | None = None) -> int:
     held = 0
     for rank, grasp in enumerate(grasps):
         t0 = time.perf_counter()
-        result = lift_test(
-            mesh,
-            grasp,
-            seed=args.seed,
-            lift=args.lift,
-            shake=not args.no_shake,
-            friction=args.friction,
-            density=args.density,
-            table=args.table,
-        )
+        try:
+            result = lift_test(
+                mesh,
+                grasp,
+                seed=args.seed,
+                lift=args.lift,
+                shake=not args.no_shake,
+                friction=args.friction,
+                density=args.density,
+                table=args.table,
+                approach=args.approach,
+            )
+        except ValueError as exc:
+            parser.error(str(exc))
         wall = time.perf_counter() - t0
         held += result.success
         print(

@@ -22,7 +22,8 @@ from dataclasses import dataclass
 import numpy as np
 import trimesh
 
-from grasp.autograsp import GraspResult, autograsp
+from grasp.autograsp import GraspResult, autograsp, with_quality
+from grasp.quality import contacts_wrenches, epsilon_upper_bound
 from grasp.sim import CollisionScene, check_mesh, fibonacci_directions
 
 #: Spreads (degrees) the random candidates draw from: parallel fingers, tripod, T, and between.
@@ -170,9 +171,75 @@ def plan(
     radius = float(np.linalg.norm(scene.mesh.extents))  # bounding-box diagonal
     travel = radius + 2.0 * STANDOFF_M if max_travel is None else max_travel
     results = [
-        autograsp(scene, c.palm_pose, spread_deg=c.spread_deg, max_travel=travel)
+        autograsp(scene, c.palm_pose, spread_deg=c.spread_deg, max_travel=travel, quality=False)
         for c in candidates
     ]
-    order = sorted(range(len(results)), key=lambda i: rank_key(results[i]), reverse=True)
-    ranked = [results[i] for i in order]
-    return ranked if top_k is None else ranked[:top_k]
+    return rank(results, scene, top_k=top_k)
+
+
+def rank(
+    results: Sequence[GraspResult], scene: CollisionScene, *, top_k: int | None = None
+) -> list[GraspResult]:
+    """Score (epsilon, volume) and sort grasps on ``scene``'s object, best first.
+
+    Ties keep the input order. With ``top_k`` only the grasps that can still enter the top list
+    are scored: a cheap upper bound on epsilon (:func:`grasp.quality.epsilon_upper_bound`) rules
+    out the rest, so the returned list is exactly the first ``top_k`` of the full ranking.
+    """
+    order = list(range(len(results)))
+    if top_k is None or top_k >= len(results):
+        scored = {i: with_quality(results[i], scene) for i in order}
+    else:
+        wrenches = [
+            contacts_wrenches(r.contacts, center=scene.center, max_radius=scene.max_radius)
+            for r in results
+        ]
+        bounds = [epsilon_upper_bound(w) for w in wrenches]
+        scored = {}
+        for i in sorted(order, key=lambda i: -bounds[i]):
+            if len(scored) >= top_k:
+                kth = sorted((r.epsilon for r in scored.values()), reverse=True)[top_k - 1]
+                if bounds[i] < kth:
+                    break  # this and every later bound: epsilon below the k-th best
+                if epsilon_upper_bound(wrenches[i], refine=True) < kth:
+                    continue
+            scored[i] = with_quality(results[i], scene)
+    ranked = sorted(scored, key=lambda i: (*rank_key(scored[i]), -i), reverse=True)
+    return [scored[i] for i in ranked][: len(results) if top_k is None else top_k]
+
+
+def main(argv: Sequence[str] | None = None) -> None:
+    """``python -m grasp.planner MESH``: plan, print the best grasps and the time taken."""
+    import argparse
+    import time
+    from pathlib import Path
+
+    parser = argparse.ArgumentParser(
+        prog="python -m grasp.planner", description="Plan BarrettHand grasps on a mesh file."
+    )
+    parser.add_argument("mesh", type=Path, help="mesh file (OBJ, STL, PLY, ...), metres")
+    parser.add_argument("--candidates", type=int, default=64, help="candidate grasps to try")
+    parser.add_argument("--seed", type=int, default=0, help="seed of the candidates")
+    parser.add_argument("--top-k", type=int, default=5, help="grasps to print")
+    parser.add_argument("--scale", type=float, default=1.0, help="multiply the mesh by this")
+    args = parser.parse_args(argv)
+    if not args.mesh.is_file():
+        parser.error(f"no such mesh file: {args.mesh}")
+    mesh = trimesh.load(args.mesh, force="mesh")
+    if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
+        parser.error(f"{args.mesh} holds no triangles")
+    mesh.apply_scale(args.scale)
+    wall, cpu = time.perf_counter(), time.process_time()
+    results = plan(mesh, n_candidates=args.candidates, seed=args.seed, top_k=args.top_k)
+    wall, cpu = time.perf_counter() - wall, time.process_time() - cpu
+    print(
+        f"{args.mesh.name}: {len(mesh.faces)} faces, {args.candidates} candidates in "
+        f"{wall:.2f} s wall, {cpu:.2f} s CPU ({1000 * cpu / args.candidates:.1f} ms CPU each)"
+    )
+    for rank, r in enumerate(results, 1):
+        joints = " ".join(f"{v:6.1f}" for v in r.joints_deg)
+        print(f"{rank:2d}. eps {r.epsilon:6.3f} vol {r.volume:7.3f} [{joints}] {r.reason}")
+
+
+if __name__ == "__main__":
+    main()

@@ -115,7 +115,7 @@ def save_grasp_figure(
         ax.set_title(label, fontsize=9)
         ax.axis("off")
     fig.suptitle((title + "\n" if title else "") + _caption(result), fontsize=8)
-    fig.subplots_adjust(left=0.01, right=0.99, bottom=0.01, top=0.86, wspace=0.02)
+    fig.subplots_adjust(left=0.01, right=0.99, bottom=0.01, top=0.80, wspace=0.02)
     path = Path(path)
     fig.savefig(path)
     plt.close(fig)

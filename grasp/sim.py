@@ -50,6 +50,8 @@ MAX_CONTACTS_PER_PATCH = 4
 _PATCH_COS = float(np.cos(np.radians(10.0)))
 #: A patch smaller than this across counts as a point contact (or a line if only narrower).
 _POINT_PATCH_M = 0.010
+#: Subtracted from GJK distances to the bounding polytope so that they stay lower bounds.
+_GJK_SLACK_M = 2e-4
 #: Directions (besides ±x, ±y, ±z) of the k-DOP that bounds the object for free-space steps.
 _BOUND_DIRECTIONS = 100
 
@@ -233,7 +235,7 @@ class CollisionScene:
             pose = link_to_world @ local
             obj.setTransform(fcl.Transform(pose[:3, :3], pose[:3, 3]))
             dist = fcl.distance(obj, self._hull, self._distance_request, fcl.DistanceResult())
-            best = min(best, dist)
+            best = min(best, dist - _GJK_SLACK_M)  # GJK on cylinders is ~µm approximate
             if best <= 0.0:
                 return 0.0
         return float(best)
@@ -305,33 +307,30 @@ def _patches(points: np.ndarray, normals: np.ndarray, k: int) -> list[tuple[np.n
         members, remaining = remaining[alike], remaining[~alike]
         normal = normals[members].mean(axis=0)
         normal /= np.linalg.norm(normal)
-        out.extend((point, normal) for point in _outline(points[members], normal, k))
+        out.extend((point, normal) for point in _outline(points[members], k))
     return out
 
 
-def _outline(points: np.ndarray, normal: np.ndarray, k: int) -> list[np.ndarray]:
-    """Representative points of one contact patch: (n, 3) points around a unit ``normal``.
+def _outline(points: np.ndarray, k: int) -> list[np.ndarray]:
+    """Representative points of one contact patch of (n, 3) ``points``.
 
     A patch whose extent is under ``_POINT_PATCH_M`` becomes one point (its mean), a patch
     narrower than that a line (its two ends along the long axis), anything wider the corners of
     its outline (at most ``k``, farthest-point subset). The 0.2 mm contact band turns a touching
     sphere or cylinder into a patch a few millimetres wide; this undoes that.
     """
-    helper = np.eye(3)[int(np.argmin(np.abs(normal)))]
-    t1 = np.cross(normal, helper)
-    t1 /= np.linalg.norm(t1)
-    t2 = np.cross(normal, t1)
-    flat = np.stack([points @ t1, points @ t2], axis=1)  # (n, 2)
-    centred = flat - flat.mean(axis=0)
+    if len(points) == 1 or np.ptp(points, axis=0).max() < _POINT_PATCH_M / 2:
+        return [points.mean(axis=0)]
+    centred = points - points.mean(axis=0)
     _, _, axes = np.linalg.svd(centred, full_matrices=False)
-    along = centred @ axes.T  # (n, 2) coordinates along the principal axes
-    extent = np.ptp(along, axis=0) if len(points) > 1 else np.zeros(2)
+    along = centred @ axes[:2].T  # (n, 2) coordinates along the patch's principal axes
+    extent = np.ptp(along, axis=0)
     if extent[0] < _POINT_PATCH_M:
         return [points.mean(axis=0)]
-    if len(extent) < 2 or extent[1] < _POINT_PATCH_M:
+    if extent[1] < _POINT_PATCH_M:
         return [points[int(np.argmin(along[:, 0]))], points[int(np.argmax(along[:, 0]))]]
-    corners = ConvexHull(flat, qhull_options="QJ").vertices
-    pts = flat[corners]
+    corners = ConvexHull(along, qhull_options="QJ").vertices
+    pts = along[corners]
     # farthest-point sampling from the corner farthest from the centroid (rigid-motion invariant)
     chosen = [int(np.argmax(np.linalg.norm(pts - pts.mean(axis=0), axis=1)))]
     dist = np.linalg.norm(pts - pts[chosen[0]], axis=1)
@@ -406,7 +405,9 @@ class GraspWorld:
                 path = Path(tmp) / "barrett.urdf"
                 path.write_text(urdf_string(params))
                 self.hand_id = self.client.loadURDF(
-                    str(path), useFixedBase=True, flags=pybullet.URDF_USE_INERTIA_FROM_FILE
+                    str(path),
+                    useFixedBase=True,
+                    flags=pybullet.URDF_USE_INERTIA_FROM_FILE | pybullet.URDF_USE_IMPLICIT_CYLINDER,
                 )
         except Exception:
             self.client.disconnect()
@@ -421,6 +422,10 @@ class GraspWorld:
             self.joints[record.name] = record
             self.link_index[record.child_link] = index
         self.link_name = {index: name for name, index in self.link_index.items()}
+        # pybullet pads concave meshes with a 1 mm margin; kinematic queries want true distances
+        self.client.changeDynamics(self.object_id, -1, collisionMargin=0.0)
+        for index in self.link_name:
+            self.client.changeDynamics(self.hand_id, index, collisionMargin=0.0)
         # the base of a pybullet body is its inertial frame, not the URDF link frame
         local = self.client.getDynamicsInfo(self.hand_id, -1)
         self._palm_to_base = _pybullet_to_pose(local[3], local[4])

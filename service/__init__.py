@@ -1,0 +1,21 @@
+"""HTTP service: stream depth views of an object into a session, get a BarrettHand grasp.
+
+``python -m service [--host H] [--port P]`` serves the shipped MVP on 127.0.0.1:8000 with the
+sessions in ``./grasp_store.sqlite``; every setting is a ``GRASP_*`` environment variable
+(:class:`service.settings.Settings`). OpenAPI docs at ``/docs``. A session, from Python::
+
+    import httpx
+    from completion.scenes import make_sequence
+    from service.client import scene_views
+
+    views = scene_views(make_sequence("camera_pan", "test", 0, keep_depth=True))
+    sid = httpx.post("http://127.0.0.1:8000/views", json=views[0]).json()["session_id"]
+    for body in views[1:]:
+        httpx.post("http://127.0.0.1:8000/views", json=body | {"session_id": sid})
+    grasp = httpx.get("http://127.0.0.1:8000/grasp", params={"session_id": sid}, timeout=60)
+
+Modules: ``app`` (factory, lifespan, errors) · ``routes`` · ``schemas`` (request and response
+bodies) · ``settings`` · ``deps`` (route dependencies) · ``inputs`` (decoding and checking views) ·
+``pipeline`` (stream step, completion, mesh) · ``planning`` (grasp planning in worker processes) ·
+``sessions`` (SQLite store) · ``client`` (encoding views) · ``load`` (load generator).
+"""

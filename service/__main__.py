@@ -16,7 +16,16 @@ from service.settings import Settings
 
 def main(argv: list[str] | None = None) -> None:
     defaults = Settings()
-    parser = argparse.ArgumentParser(prog="python -m service", description=__doc__.split("\n")[0])
+    parser = argparse.ArgumentParser(
+        prog="python -m service",
+        description="Serve the grasp-planning HTTP API with uvicorn (OpenAPI docs at /docs).",
+        epilog="settings (environment variables):\n"
+        + "\n".join(
+            f"  GRASP_{name.upper():<22}{field.description} (default {field.default})"
+            for name, field in Settings.model_fields.items()
+        ),
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
     parser.add_argument("--host", default=defaults.host, help=f"default {defaults.host}")
     parser.add_argument("--port", type=int, default=defaults.port, help=f"default {defaults.port}")
     args = parser.parse_args(argv)

@@ -24,6 +24,7 @@ from completion.stream import NoObjectError
 from service.deps import Services
 from service.inputs import InputError
 from service.pipeline import ModelMismatch, Pipeline
+from service.planning import Planner
 from service.routes import health_router, router
 from service.sessions import (
     ConcurrentUpdate,
@@ -79,7 +80,7 @@ async def _lifespan(app: FastAPI) -> AsyncIterator[None]:
         settings=settings,
         pipeline=pipeline,
         inference=CapacityLimiter(settings.inference_workers),
-        planning=CapacityLimiter(settings.planning_workers),
+        planner=Planner(settings.planning_workers, processes=settings.planning_processes),
         locks=SessionLocks(),
     )
     log.info("model %s (weights %s), store %s", settings.model, pipeline.model_id, store.path)
@@ -90,6 +91,7 @@ async def _lifespan(app: FastAPI) -> AsyncIterator[None]:
         sweeper.cancel()
         with contextlib.suppress(asyncio.CancelledError):
             await sweeper
+        await anyio.to_thread.run_sync(app.state.services.planner.close)
 
 
 async def _purge_expired(store: SessionStore) -> None:

@@ -14,6 +14,7 @@ from fastapi import Depends, HTTPException, Request, status
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 
 from service.pipeline import Pipeline
+from service.planning import Planner
 from service.sessions import SessionLocks
 from service.settings import Settings
 
@@ -22,21 +23,21 @@ T = TypeVar("T")
 
 @dataclass
 class Services:
-    """Everything the lifespan builds: settings, the pipeline and the thread limits."""
+    """Everything the lifespan builds: settings, the pipeline, the planner, the thread limit."""
 
     settings: Settings
     pipeline: Pipeline
     inference: CapacityLimiter  # model steps and completions running at once
-    planning: CapacityLimiter  # grasp plans running at once
+    planner: Planner  # grasp plans, in worker processes or threads
     locks: SessionLocks  # POST /views of one session, one after the other
 
     async def infer(self, fn: Callable[..., T], *args, **kwargs) -> T:
         """Run blocking model work in a worker thread, at most ``inference_workers`` at once."""
         return await anyio.to_thread.run_sync(partial(fn, *args, **kwargs), limiter=self.inference)
 
-    async def plan(self, fn: Callable[..., T], *args, **kwargs) -> T:
-        """Run a grasp plan in a worker thread, at most ``planning_workers`` at once."""
-        return await anyio.to_thread.run_sync(partial(fn, *args, **kwargs), limiter=self.planning)
+    async def io(self, fn: Callable[..., T], *args, **kwargs) -> T:
+        """Run a quick store call in a worker thread, without queueing behind the model."""
+        return await anyio.to_thread.run_sync(partial(fn, *args, **kwargs))
 
 
 def get_services(request: Request) -> Services:

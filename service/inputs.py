@@ -14,7 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from completion.grid import GRID_SIZE, Intrinsics, VoxelGrid
+from completion.grid import GRID_SIZE, Intrinsics, VoxelGrid, depth_to_points
 from service.schemas import DepthIn, GridIn, ViewIn
 
 #: Largest |coordinate| (metres) accepted in points, depth and transforms: far beyond any depth
@@ -22,6 +22,8 @@ from service.schemas import DepthIn, GridIn, ViewIn
 MAX_COORDINATE_M = 1000.0
 #: Tolerance of the rigidity check on camera poses (orthonormal rotation).
 RIGID_TOL = 1e-3
+#: Voxel pitch (metres) a client-made grid may have: 0.1 mm to 10 m.
+MIN_PITCH_M, MAX_PITCH_M = 1e-4, 10.0
 
 
 class InputError(ValueError):
@@ -35,43 +37,42 @@ class InputError(ValueError):
 
 @dataclass(frozen=True)
 class DecodedView:
-    """Exactly one of depth (with intrinsics, optional mask), points or grid; arrays are numpy."""
+    """A view as the object's points (a depth image is back-projected here) or a ready grid."""
 
-    depth: np.ndarray | None = None  # (H, W) float64 metres, ≤ 0 or non-finite = no return
-    intrinsics: Intrinsics | None = None
-    mask: np.ndarray | None = None  # (H, W) bool
-    points: np.ndarray | None = None  # (n, 3) float64
+    points: np.ndarray | None = None  # (n, 3) float64, camera frame, metres
     grid: VoxelGrid | None = None
     camera_to_world: np.ndarray | None = None  # (4, 4) float64
 
     def add_view_kwargs(self) -> dict:
         """Keyword arguments for :meth:`completion.stream.CompletionStream.add_view`."""
-        return {
-            "depth": self.depth,
-            "intrinsics": self.intrinsics,
-            "mask": self.mask,
-            "points": self.points,
-            "grid": self.grid,
-            "camera_to_world": self.camera_to_world,
-        }
+        return {"points": self.points, "grid": self.grid, "camera_to_world": self.camera_to_world}
 
 
 def decode_view(view: ViewIn, *, max_image_pixels: int, max_points: int) -> DecodedView:
-    """Decode and check one view; raises :class:`InputError`."""
+    """Decode and check one view; raises :class:`InputError`.
+
+    A depth image is back-projected with :func:`completion.grid.depth_to_points`, exactly as
+    ``CompletionStream.add_view(depth=...)`` and the training data do, so that the points can be
+    checked like client-sent ones.
+    """
     pose = None if view.camera_pose is None else _camera_pose(view.camera_pose)
     if view.points is not None:
-        return DecodedView(points=_points(view.points, max_points), camera_to_world=pose)
+        if len(view.points) > max_points:
+            raise InputError(
+                ("body", "points"), f"at most {max_points} points per view, got {len(view.points)}"
+            )
+        points = np.asarray(view.points, dtype=np.float64).reshape(-1, 3)
+        return DecodedView(points=_checked_points(points), camera_to_world=pose)
     if view.grid is not None:
         return DecodedView(grid=_grid(view.grid), camera_to_world=pose)
     assert view.depth is not None and view.intrinsics is not None  # ViewIn's own check
     depth = _depth(view.depth, max_image_pixels)
     k = view.intrinsics
-    try:
-        intrinsics = Intrinsics(k.fx, k.fy, k.cx, k.cy, width=depth.shape[1], height=depth.shape[0])
-    except ValueError as exc:
-        raise InputError(("body", "intrinsics"), str(exc)) from exc
+    intrinsics = Intrinsics(k.fx, k.fy, k.cx, k.cy, width=depth.shape[1], height=depth.shape[0])
     mask = None if view.mask is None else _mask(view.mask, depth.shape)
-    return DecodedView(depth=depth, intrinsics=intrinsics, mask=mask, camera_to_world=pose)
+    with np.errstate(over="ignore", invalid="ignore"):
+        points = depth_to_points(depth, intrinsics, mask)
+    return DecodedView(points=_checked_points(points, from_depth=True), camera_to_world=pose)
 
 
 def _base64(text: str, loc: tuple[str, ...]) -> bytes:
@@ -81,12 +82,15 @@ def _base64(text: str, loc: tuple[str, ...]) -> bytes:
         raise InputError(loc, f"{'.'.join(loc[1:])} must be standard base64 ({exc})") from exc
 
 
-def _points(points: list[list[float]], max_points: int) -> np.ndarray:
-    loc = ("body", "points")
-    if len(points) > max_points:
-        raise InputError(loc, f"at most {max_points} points per view, got {len(points)}")
-    pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
-    far = np.flatnonzero(np.abs(pts).max(axis=1, initial=0.0) > MAX_COORDINATE_M)
+def _checked_points(pts: np.ndarray, *, from_depth: bool = False) -> np.ndarray:
+    loc = ("body", "intrinsics") if from_depth else ("body", "points")
+    far = np.flatnonzero(~(np.abs(pts).max(axis=1, initial=0.0) <= MAX_COORDINATE_M))
+    if len(far) and from_depth:
+        raise InputError(
+            loc,
+            f"the depth image back-projects to points beyond ±{MAX_COORDINATE_M:g} m "
+            f"(e.g. {pts[far[0]].tolist()}): fx, fy, cx, cy must be in pixels",
+        )
     if len(far):
         raise InputError(
             loc,
@@ -213,11 +217,15 @@ def _grid(grid: GridIn) -> VoxelGrid:
         )
     loc = ("body", "grid", "grid_to_camera")
     t = _matrix(grid.grid_to_camera, loc, "grid_to_camera")
-    det = float(np.linalg.det(t[:3, :3]))
-    if not det > 1e-15:
+    pitch = float(t[0, 0])
+    scale = t[:3, :3]
+    if not MIN_PITCH_M <= pitch <= MAX_PITCH_M or not np.allclose(
+        scale, pitch * np.eye(3), rtol=0.0, atol=1e-6 * pitch
+    ):
         raise InputError(
             loc,
-            "grid_to_camera must map voxel indices to metres with a positive scale "
-            f"(determinant of the 3×3 part > 0), got determinant {det:g}",
+            "grid_to_camera must be pitch × identity plus a translation (grid axes along the "
+            f"camera axes, DESIGN §3) with a pitch of {MIN_PITCH_M:g}…{MAX_PITCH_M:g} m; "
+            f"got the 3×3 part {np.round(scale, 9).tolist()}",
         )
     return VoxelGrid(VoxelGrid.unpack(raw), t)

@@ -50,7 +50,7 @@ class Tally:
                 "errors": len(self.errors.get(route, [])),
             }
         split = {}
-        for key in ("load", "completion", "mesh", "planning", "total"):
+        for key in ("load", "completion", "mesh", "planning", "waiting", "total"):
             values = [t[key] for t in self.grasp_timing_ms if key in t]
             if values:
                 split[key] = {

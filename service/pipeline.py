@@ -1,7 +1,7 @@
 """The chain behind the routes, as plain blocking functions (the app runs them in worker threads).
 
 ``POST /views``: stored state → ``CompletionStream`` step → stored state.
-``GET /grasp``: stored state → completion → mesh (marching cubes) → BarrettHand grasp plan.
+``GET /grasp``: stored state → completion → mesh (marching cubes); :mod:`service.planning` plans.
 """
 
 from __future__ import annotations
@@ -45,13 +45,6 @@ class Snapshot:
     record: SessionRecord
     completion: Completion
     camera_to_world: np.ndarray | None  # (4, 4) of the latest view, when given
-
-
-@dataclass(frozen=True)
-class PlannedGrasps:
-    snapshot: Snapshot
-    results: list  # grasp.planner.GraspResult, best first
-    timing_ms: dict[str, float]
 
 
 class Pipeline:
@@ -121,10 +114,8 @@ class Pipeline:
         c = self.snapshot(session_id).completion
         return grid_to_mesh(c.probabilities, c.grid_to_camera, threshold=c.threshold)
 
-    def grasps(self, session_id: str, *, top_k: int, n_candidates: int, seed: int) -> PlannedGrasps:
-        """Complete, mesh and plan; the timing of each stage in milliseconds."""
-        from grasp.planner import plan
-
+    def grasp_mesh(self, session_id: str) -> tuple[Snapshot, trimesh.Trimesh, dict[str, float]]:
+        """What ``GET /grasp`` plans on: the completion's mesh; and each stage's milliseconds."""
         t0 = time.perf_counter()
         record = self.store.get(session_id)
         stream = self._stream(record)
@@ -135,17 +126,9 @@ class Pipeline:
             completion.probabilities, completion.grid_to_camera, threshold=completion.threshold
         )
         t3 = time.perf_counter()
-        results = plan(mesh, n_candidates=n_candidates, seed=seed, top_k=top_k)
-        t4 = time.perf_counter()
-        timing = {
-            "load": t1 - t0,
-            "completion": t2 - t1,
-            "mesh": t3 - t2,
-            "planning": t4 - t3,
-            "total": t4 - t0,
-        }
+        timing = {"load": t1 - t0, "completion": t2 - t1, "mesh": t3 - t2}
         snapshot = Snapshot(record, completion, stream.camera_to_world)
-        return PlannedGrasps(snapshot, results, {k: round(v * 1e3, 3) for k, v in timing.items()})
+        return snapshot, mesh, {k: v * 1e3 for k, v in timing.items()}
 
 
 def _step(stream: CompletionStream, view: DecodedView) -> ViewResult:

@@ -7,6 +7,7 @@ errors are raised as exceptions that :mod:`service.app` turns into 4xx answers.
 from __future__ import annotations
 
 import base64
+import time
 from datetime import UTC, datetime
 from typing import Annotated
 
@@ -17,7 +18,7 @@ from completion.mesh import MeshFormat, export_mesh
 from hands.barrett import JOINT_NAMES
 from service.deps import ServicesDep, require_token
 from service.inputs import InputError, decode_view
-from service.pipeline import PlannedGrasps
+from service.pipeline import Snapshot
 from service.schemas import (
     ContactOut,
     ErrorOut,
@@ -88,22 +89,27 @@ async def get_grasp(
     ] = None,
 ) -> GraspsOut:
     """Complete the session's current state, mesh it and plan BarrettHand grasps."""
+    start = time.perf_counter()
     s = services.settings
     n = s.n_candidates if n_candidates is None else n_candidates
     if n > s.max_candidates:
         raise InputError(
             ("query", "n_candidates"), f"n_candidates must be at most {s.max_candidates}, got {n}"
         )
-    planned = await services.plan(
-        services.pipeline.grasps, session_id, top_k=top_k, n_candidates=n, seed=s.plan_seed
+    snapshot, mesh, timing = await services.infer(services.pipeline.grasp_mesh, session_id)
+    results, seconds = await services.planner.plan(
+        mesh.vertices, mesh.faces, n_candidates=n, seed=s.plan_seed, top_k=top_k
     )
-    return _grasps_out(planned)
+    total = (time.perf_counter() - start) * 1e3
+    timing["planning"] = seconds * 1e3
+    timing |= {"waiting": max(total - sum(timing.values()), 0.0), "total": total}
+    return _grasps_out(snapshot, results, timing)
 
 
 @router.get("/sessions/{session_id}", response_model=SessionOut, responses=_errors(404))
 async def get_session(session_id: PathId, services: ServicesDep) -> SessionOut:
     """A session's view count and times."""
-    record = await services.infer(services.pipeline.store.get, session_id)
+    record = await services.io(services.pipeline.store.get, session_id)
     ttl = services.pipeline.store.ttl_s
     return SessionOut(
         session_id=record.id,
@@ -121,7 +127,7 @@ async def get_session(session_id: PathId, services: ServicesDep) -> SessionOut:
 async def delete_session(session_id: PathId, services: ServicesDep) -> Response:
     """Forget a session."""
     store = services.pipeline.store
-    if not await services.infer(store.delete, session_id):
+    if not await services.io(store.delete, session_id):
         raise SessionNotFound(store.not_found_message(session_id))
     return Response(status_code=status.HTTP_204_NO_CONTENT)
 
@@ -169,20 +175,19 @@ async def get_occupancy(session_id: PathId, services: ServicesDep) -> OccupancyO
 @health_router.get("/healthz", response_model=HealthOut)
 async def healthz(services: ServicesDep) -> HealthOut:
     """Liveness: the model is loaded and the store answers (no token needed)."""
-    sessions = await services.infer(services.pipeline.store.count)
+    sessions = await services.io(services.pipeline.store.count)
     return HealthOut(model=services.pipeline.model_name, sessions=sessions)
 
 
-def _grasps_out(planned: PlannedGrasps) -> GraspsOut:
-    snap = planned.snapshot
-    held = [r for r in planned.results if r.success]
-    reasons = sorted({r.reason for r in planned.results if not r.success and r.reason})
+def _grasps_out(snapshot: Snapshot, results: list, timing_ms: dict[str, float]) -> GraspsOut:
+    held = [r for r in results if r.success]
+    reasons = sorted({r.reason for r in results if not r.success and r.reason})
     return GraspsOut(
-        session_id=snap.record.id,
-        views=snap.record.views,
-        grasps=[_grasp_out(r, snap.camera_to_world) for r in held],
+        session_id=snapshot.record.id,
+        views=snapshot.record.views,
+        grasps=[_grasp_out(r, snapshot.camera_to_world) for r in held],
         reason=None if held else ("; ".join(reasons) or "no grasp candidate"),
-        timing_ms=planned.timing_ms,
+        timing_ms={k: round(v, 3) for k, v in timing_ms.items()},
     )
 
 

@@ -122,7 +122,9 @@ class GraspsOut(BaseModel):
     views: int
     grasps: list[GraspOut] = Field(description="best first; empty when no candidate held")
     reason: str | None = Field(None, description="why no grasp was found, when grasps is empty")
-    timing_ms: dict[str, float] = Field(description="load, completion, mesh, planning, total")
+    timing_ms: dict[str, float] = Field(
+        description="load, completion, mesh, planning; waiting (for a free worker); total"
+    )
 
 
 # ------------------------------------------------------------------------------- sessions

@@ -44,4 +44,7 @@ class Settings(BaseSettings):
     inference_workers: int = Field(
         2, ge=1, description="model steps (POST /views, completions) running at once"
     )
-    planning_workers: int = Field(1, ge=1, description="grasp plans running at once")
+    planning_workers: int = Field(2, ge=1, description="grasp plans running at once")
+    planning_processes: bool = Field(
+        True, description="plan in worker processes (false: in threads of the server process)"
+    )

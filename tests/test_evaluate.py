@@ -23,19 +23,21 @@ KINDS = {
 }
 
 
-def _tiny_weights(folder, *, logit: float = 2.0) -> dict[str, str]:
+def _tiny_weights(folder, *, logit: float | None = 2.0) -> dict[str, str]:
     """Untrained tiny checkpoints whose output is a constant logit (a full grid at 0.5).
 
     An untrained network predicts noise around 0.5, whose marching-cubes surface is a sponge;
     a constant, well-defined completion keeps the test fast and every metric defined.
+    ``logit=None`` keeps the untrained network as it is.
     """
     paths = {}
     for i, (name, kind) in enumerate(KINDS.items()):
         model = build_model(ModelConfig(kind=kind, seed=i, **TINY))
         last = model.decoder.deconvs[-1]
-        with torch.no_grad():
-            last.weight.zero_()
-            last.bias.fill_(logit)
+        if logit is not None:
+            with torch.no_grad():
+                last.weight.zero_()
+                last.bias.fill_(logit)
         path = folder / f"{name}.pt"
         save_checkpoint(model, path, threshold=0.5)
         paths[name] = str(path)
@@ -91,6 +93,10 @@ def test_objects_folder_without_meshes_is_an_argparse_error(tmp_path, capsys):
     with pytest.raises(SystemExit):
         ev.main(["--models", "registered_fusion", "--objects", str(tmp_path)])
     assert "no OBJ/STL/PLY meshes" in capsys.readouterr().err
+    (tmp_path / "broken.obj").write_text("this is not a mesh\n")
+    with pytest.raises(SystemExit):
+        ev.main(["--models", "registered_fusion", "--objects", str(tmp_path)])
+    assert "broken.obj" in capsys.readouterr().err
 
 
 # ------------------------------------------------------------------------------ end to end
@@ -207,3 +213,24 @@ def test_same_seed_same_numbers(tiny_run, tmp_path):
                 again["tables"][metric][row]["object_hiding"]
                 == first["tables"][metric][row]["object_hiding"]
             )
+
+
+def test_numbers_do_not_depend_on_the_number_of_workers(tmp_path):
+    paths = _tiny_weights(tmp_path, logit=None)  # untrained: outputs scattered around 0.5
+    runs = []
+    for workers in (1, 2):
+        settings = ev.Settings(
+            rows=("mvp", ev.FUSION),
+            model_paths=(("mvp", paths["mvp"]),),
+            conditions=("object_reveal",),
+            count=1,
+            grasp_count=0,
+            named=0,
+            views=3,
+            seed=5,
+            workers=workers,
+            examples=False,
+        )
+        runs.append(ev.evaluate(settings, progress=False))
+    assert runs[0]["per_object"] == runs[1]["per_object"]
+    assert runs[0]["tables"] == runs[1]["tables"]

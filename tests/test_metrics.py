@@ -150,20 +150,29 @@ def test_joint_error_of_a_mesh_with_itself_is_zero():
     result = metrics.grasp_joint_error(mesh, mesh.copy(), n_candidates=4, seed=0)
     assert result.error_deg == 0.0, result.reason
     np.testing.assert_array_equal(result.per_joint_deg, np.zeros(8))
-    assert result.palm_pose.shape == (4, 4)
+    assert result.planned.palm_pose.shape == (4, 4)
+    np.testing.assert_array_equal(result.on_prediction.joints_deg, result.on_truth.joints_deg)
+    summary = result.as_dict()
+    assert summary["error_deg"] == 0.0 and len(summary["on_truth"]["joints_deg"]) == 8
 
 
 def test_joint_error_against_a_scaled_copy_is_small_and_positive():
     _needs_planner()
     mesh = _object()
-    truth = mesh.copy()
-    truth.apply_scale(1.08)
-    truth.apply_translation(mesh.centroid - truth.centroid)
-    result = metrics.grasp_joint_error(mesh, truth, n_candidates=4, seed=0)
-    assert result.error_deg is not None, result.reason
-    assert 0.0 < result.error_deg < 15.0
-    assert result.per_joint_deg.shape == (8,)
-    assert result.error_deg == pytest.approx(result.per_joint_deg.mean())
+    errors = []
+    for scale in (1.02, 1.08):
+        truth = mesh.copy()
+        truth.apply_scale(scale)
+        truth.apply_translation(mesh.centroid - truth.centroid)
+        result = metrics.grasp_joint_error(mesh, truth, n_candidates=4, seed=0)
+        assert result.error_deg is not None, result.reason
+        assert result.per_joint_deg.shape == (8,)
+        assert result.error_deg == pytest.approx(result.per_joint_deg.mean())
+        spreads = [metrics.JOINT_NAMES.index(n) for n in ("f1_spread", "f2_spread")]
+        assert (result.per_joint_deg[spreads] == 0).all()  # the spread is never moved
+        errors.append(result.error_deg)
+    # a larger object stops the fingers earlier: a small error that grows with the difference
+    assert 0.0 < errors[0] < errors[1] < 5.0
 
 
 def test_joint_error_without_a_prediction_surface_is_a_value():

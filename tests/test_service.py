@@ -82,6 +82,7 @@ def settings(tmp_path, model: str, **overrides) -> Settings:
         n_candidates=4,
         max_candidates=16,
         torch_threads=torch.get_num_threads(),  # leave the test process as it was
+        planning_processes=False,  # the real-server tests plan in processes
     )
     return Settings(**(values | overrides))
 
@@ -233,8 +234,9 @@ def test_grasp(client, scene):
     assert r.status_code == 200, r.text
     out = r.json()
     assert out["session_id"] == sid and out["views"] == 2
-    assert set(out["timing_ms"]) == {"load", "completion", "mesh", "planning", "total"}
-    assert out["timing_ms"]["total"] >= out["timing_ms"]["planning"] > 0
+    timing = out["timing_ms"]
+    assert set(timing) == {"load", "completion", "mesh", "planning", "waiting", "total"}
+    assert timing["total"] >= timing["planning"] > 0 and timing["waiting"] >= 0
     assert 1 <= len(out["grasps"]) <= 2, out["reason"]
     camera = np.asarray(bodies[1]["camera_pose"])
     for g in out["grasps"]:
@@ -355,7 +357,13 @@ BAD_VIEWS = [
      ["body", "grid", "data"], "grid.data must hold 8000 bytes (40³ bits packed"),
     ("grid singular", lambda s: {"grid": {"data": b64(bytes(8000)),
                                           "grid_to_camera": np.diag([1.0, 1, 0, 1]).tolist()}},
-     ["body", "grid", "grid_to_camera"], "positive scale"),
+     ["body", "grid", "grid_to_camera"], "pitch × identity plus a translation"),
+    ("grid rotated", lambda s: {"grid": {"data": b64(bytes(8000)),
+                                         "grid_to_camera": np.eye(4)[[1, 0, 2, 3]].tolist()}},
+     ["body", "grid", "grid_to_camera"], "grid axes along the camera axes"),
+    ("intrinsics not pixels", lambda s: _depth_view(s) | {"intrinsics": {
+        "fx": 1e-9, "fy": 1e-9, "cx": 0, "cy": 0}}, ["body", "intrinsics"],
+     "back-projects to points beyond ±1000 m"),
     ("pose not rigid", lambda s: points_view() | {"camera_pose": np.diag([2.0, 1, 1, 1]).tolist()},
      ["body", "camera_pose"], "rigid camera→world transform"),
     ("pose last row", lambda s: points_view() | {"camera_pose": np.ones((4, 4)).tolist()},
@@ -632,6 +640,7 @@ def post_views(url: str, bodies: list[dict], session_id: str | None = None) -> t
     return session_id, indices
 
 
+@pytest.mark.slow
 def test_stream_a_scene_then_grasp_and_mesh(server, scene):
     bodies = scene_views(scene)
     assert len(bodies) == 12
@@ -654,6 +663,7 @@ def test_stream_a_scene_then_grasp_and_mesh(server, scene):
     assert load_mesh_bytes(r.content, "glb").is_watertight
 
 
+@pytest.mark.slow
 def test_restart_after_sigkill_continues_the_stream(tmp_path, tiny_model, scene):
     bodies = scene_views(scene)
     store = tmp_path / "store.sqlite"
@@ -677,6 +687,7 @@ def test_restart_after_sigkill_continues_the_stream(tmp_path, tiny_model, scene)
     np.testing.assert_array_equal(resumed.camera_to_world, scene.camera_to_world[11])
 
 
+@pytest.mark.slow
 def test_concurrent_views_to_one_session_are_all_applied(server, tiny_model):
     threads, per_thread = 8, 3
     bodies = {
@@ -712,6 +723,7 @@ def test_concurrent_views_to_one_session_are_all_applied(server, tiny_model):
     assert stored == reference(tiny_model, order).to_bytes()
 
 
+@pytest.mark.slow
 def test_load_generator(server):
     r = subprocess.run(
         [sys.executable, "-m", "service.load", "--url", server.url, "--sessions", "3",
@@ -729,9 +741,10 @@ def test_load_generator(server):
     assert r.returncode == 2 and "only talks to loopback hosts" in r.stderr
 
 
-FUZZ_EXAMPLES = 25  # per operation and generation mode
+FUZZ_EXAMPLES = 20  # per operation and generation mode
 
 
+@pytest.mark.slow
 def test_fuzz_openapi_no_server_error(server):
     """schemathesis: positive and negative cases for every operation; no 5xx, schema-conform."""
     import schemathesis
@@ -763,8 +776,9 @@ def test_fuzz_openapi_no_server_error(server):
 
     for result in schema.get_all_operations():
         operation = result.ok()
-        for mode in (GenerationMode.POSITIVE, GenerationMode.NEGATIVE):
-            fuzz(operation, mode)
+        fuzz(operation, GenerationMode.POSITIVE)
+        if operation.body or list(operation.iter_parameters()):  # something to get wrong
+            fuzz(operation, GenerationMode.NEGATIVE)
         if operation.method.upper() != "DELETE" and "{session_id}" in operation.path:
             fuzz(operation, GenerationMode.POSITIVE, path_parameters={"session_id": sid})
         if operation.path == "/grasp":
@@ -773,3 +787,103 @@ def test_fuzz_openapi_no_server_error(server):
     print(f"schemathesis: {total} cases over {len(counts)} operation/mode pairs: {counts}")
     assert total >= 10 * len(counts)
     assert httpx.get(f"{server.url}/healthz").status_code == 200
+
+
+# --------------------------------------------------------------------------------- golden
+# A fixed simulated scene through the shipped MVP and the default planner: a change anywhere in
+# the chain (rendering, voxelization, model, mesh, planner, service) that moves the grasp shows.
+# Regenerate (after an intended change) with:
+#   GRASP_WRITE_GOLDEN=1 python -m pytest tests/test_service.py -k golden
+
+GOLDEN = Path(__file__).resolve().parent / "golden" / "service_grasp.json"
+GOLDEN_SCENE = {"condition": "camera_pan", "split": "test", "index": 4, "seed": 0}  # a cylinder
+SHIPPED_WEIGHTS = REPO / "completion" / "weights" / "mvp.pt"
+GOLDEN_TOL_DEG = 0.5
+GOLDEN_TOL_M = 1e-3
+
+
+def _sha256(path: Path) -> str:
+    import hashlib
+
+    return hashlib.sha256(path.read_bytes()).hexdigest()
+
+
+def _rotation_deg(a: np.ndarray, b: np.ndarray) -> float:
+    cos = (np.trace(np.asarray(a)[:3, :3].T @ np.asarray(b)[:3, :3]) - 1.0) / 2.0
+    return float(np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))))
+
+
+WRITE_GOLDEN = "GRASP_WRITE_GOLDEN=1 python -m pytest tests/test_service.py -k golden"
+
+
+def golden_record(tmp_path: Path, model: str, *, n_candidates: int | None = None) -> dict:
+    """The best grasp of the golden scene's 12 views through the service (TestClient)."""
+    c = GOLDEN_SCENE
+    seq = make_sequence(c["condition"], c["split"], c["index"], seed=c["seed"], keep_depth=True)
+    config = Settings(
+        model=model,
+        store_path=tmp_path / "golden.sqlite",
+        torch_threads=torch.get_num_threads(),
+        **({} if n_candidates is None else {"n_candidates": n_candidates}),
+    )
+    with TestClient(create_app(config)) as client:
+        sid = None
+        for body in scene_views(seq):
+            r = client.post("/views", json=body | ({"session_id": sid} if sid else {}))
+            assert r.status_code == 200, r.text
+            sid = r.json()["session_id"]
+        r = client.get("/grasp", params={"session_id": sid, "top_k": 1})
+    assert r.status_code == 200, r.text
+    out = r.json()
+    assert out["views"] == 12 and out["grasps"], out["reason"]
+    best = out["grasps"][0]
+    weights = SHIPPED_WEIGHTS if model == "mvp" else Path(model)
+    return {
+        "scene": GOLDEN_SCENE,
+        "weights_sha256": _sha256(weights),
+        "n_candidates": config.n_candidates,
+        "plan_seed": config.plan_seed,
+        "palm_pose": best["palm_pose"],
+        "joints_deg": best["joints_deg"],
+        "dofs_deg": best["dofs_deg"],
+        "epsilon": best["epsilon"],
+    }
+
+
+def compare_golden(got: dict, golden: dict) -> None:
+    for key in ("scene", "weights_sha256", "n_candidates", "plan_seed"):
+        assert got[key] == golden[key], (
+            f"{key} changed since the golden was written: {WRITE_GOLDEN}"
+        )
+    for name, value in golden["joints_deg"].items():
+        assert abs(got["joints_deg"][name] - value) <= GOLDEN_TOL_DEG, (name, got["joints_deg"])
+    angle = _rotation_deg(got["palm_pose"], golden["palm_pose"])
+    assert angle <= GOLDEN_TOL_DEG, f"the palm turned {angle:.3f}°"
+    shift = np.linalg.norm(np.subtract(got["palm_pose"], golden["palm_pose"])[:3, 3])
+    assert shift <= GOLDEN_TOL_M, f"the palm moved {shift * 1e3:.2f} mm"
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(
+    not SHIPPED_WEIGHTS.is_file(),
+    reason=f"needs the shipped weights completion/weights/mvp.pt; then {WRITE_GOLDEN}",
+)
+def test_golden_grasp_through_the_shipped_mvp(tmp_path):
+    got = golden_record(tmp_path, "mvp")
+    if os.environ.get("GRASP_WRITE_GOLDEN"):
+        GOLDEN.parent.mkdir(exist_ok=True)
+        GOLDEN.write_text(json.dumps(got, indent=2) + "\n")
+        pytest.skip(f"wrote {GOLDEN}")
+    assert GOLDEN.is_file(), f"{GOLDEN} is missing: {WRITE_GOLDEN}"
+    compare_golden(got, json.loads(GOLDEN.read_text()))
+
+
+@pytest.mark.slow
+def test_golden_check_catches_a_moved_grasp(tmp_path, tiny_model):
+    """The golden machinery on the tiny model: a re-run matches, a 1° change does not."""
+    got = golden_record(tmp_path, tiny_model, n_candidates=8)
+    golden = json.loads(json.dumps(got))
+    compare_golden(golden_record(tmp_path, tiny_model, n_candidates=8), golden)
+    golden["joints_deg"]["f3_prox"] += 1.0
+    with pytest.raises(AssertionError, match="f3_prox"):
+        compare_golden(got, golden)

@@ -20,7 +20,7 @@ out" toward +z and then over the palm. Joint order everywhere: :data:`JOINT_NAME
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Literal
 
@@ -74,7 +74,9 @@ def rot_z(angle: float) -> np.ndarray:
     return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
 
 
-def transform(rotation: np.ndarray | None = None, translation: Sequence[float] = (0, 0, 0)):
+def transform(
+    rotation: np.ndarray | None = None, translation: Sequence[float] = (0, 0, 0)
+) -> np.ndarray:
     """(4, 4) homogeneous transform from a (3, 3) rotation and a (3,) translation."""
     out = np.eye(4)
     if rotation is not None:
@@ -85,10 +87,10 @@ def transform(rotation: np.ndarray | None = None, translation: Sequence[float] =
 
 def axis_rotation(axis: np.ndarray, angle: float) -> np.ndarray:
     """(4, 4) rotation by ``angle`` radians about the unit ``axis`` (one of ±x, ±y, ±z)."""
-    return _rotation_fn(axis)(angle)
+    return rotation_about(axis)(angle)
 
 
-def _rotation_fn(axis: np.ndarray):
+def rotation_about(axis: np.ndarray) -> Callable[[float], np.ndarray]:
     """A fast ``angle -> (4, 4)`` rotation about a coordinate axis (±x, ±y or ±z)."""
     axis = np.asarray(axis, dtype=np.float64)
     index = int(np.argmax(np.abs(axis)))
@@ -161,7 +163,7 @@ class HandKinematics:
         self.primitives: tuple[Primitive, ...] = self._build_primitives()
         self._joint_by_name = {joint.name: joint for joint in self.joints}
         self._rotation = {
-            joint.name: _rotation_fn(joint.axis) for joint in self.joints if joint.kind != "fixed"
+            joint.name: rotation_about(joint.axis) for joint in self.joints if joint.kind != "fixed"
         }
 
     # -- structure ------------------------------------------------------------------------------
