@@ -39,6 +39,7 @@ from completion.model import (
     CompletionModel,
     build_model,
     default_config,
+    load_checkpoint,
     read_checkpoint,
     save_checkpoint,
 )
@@ -230,6 +231,34 @@ def select_threshold(paths: list[Path]) -> float:
     return float(best)
 
 
+def model_card(paths: list[Path]) -> str:
+    """The model card (Markdown) of shipped checkpoints, from what each checkpoint recorded."""
+    rows, cond_rows = [], []
+    conditions = list(CONDITIONS)
+    threshold = None
+    for p in paths:
+        ck = read_checkpoint(p)
+        model = load_checkpoint(p)
+        threshold = ck.get("threshold", 0.5)
+        key = f"{float(threshold):.2f}"
+        val = ck["val"].get(key, ck["val"]["0.50"])
+        rows.append(
+            f"| {p.stem} | {ck['config']['kind']} | {ck['views']} | {model.n_params():,} | "
+            f"{ck['epoch']} | {ck['step']} | {ck['wall_s'] / 60:.1f} | {ck['device']} | "
+            f"{val['mean']:.3f} | `{ck['command']}` |"
+        )
+        cond_rows.append(f"| {p.stem} | " + " | ".join(
+            f"{val['per_condition'].get(c, float('nan')):.3f}" for c in conditions) + " |")
+    return "\n".join([
+        "| model | kind | train views | params | epochs | steps | wall (min) | device | "
+        f"val Jaccard @ {threshold} | command |",
+        "|---|---|---|---|---|---|---|---|---|---|", *rows, "",
+        f"Validation Jaccard per condition (mean over 12 views, threshold {threshold}):", "",
+        "| model | " + " | ".join(conditions) + " |",
+        "|---|" + "---|" * len(conditions), *cond_rows,
+    ])
+
+
 def _conditions(text: str) -> list[str]:
     names = list(CONDITIONS) if text == "all" else [c for c in text.split(",") if c]
     bad = [c for c in names if c not in CONDITIONS]
@@ -270,6 +299,9 @@ def main(argv: list[str] | None = None) -> int:
                   f"(checkpoint files; missing: {missing})", file=sys.stderr)
             return 2
         select_threshold(paths)
+        return 0
+    if argv[:1] == ["model-card"]:
+        print(model_card([Path(a) for a in argv[1:]]))
         return 0
     p = argparse.ArgumentParser(
         prog="python -m completion.train",

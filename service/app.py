@@ -84,6 +84,7 @@ async def _lifespan(app: FastAPI) -> AsyncIterator[None]:
         locks=SessionLocks(),
     )
     log.info("model %s (weights %s), store %s", settings.model, pipeline.model_id, store.path)
+    app.state.services.planner.warm_up()
     sweeper = asyncio.create_task(_purge_expired(store))
     try:
         yield

@@ -189,11 +189,16 @@ def main(argv: list[str] | None = None) -> int:
         f"({args.concurrency} at a time, n_candidates={args.n_candidates})",
         flush=True,
     )
+    import httpx
+
     start = time.perf_counter()
     try:
         tally = asyncio.run(run(args, scenes))
     except TimeoutError:
         print(f"stopped: the run exceeded --deadline {args.deadline:g} s", file=sys.stderr)
+        return 2
+    except httpx.HTTPError as exc:
+        print(f"no service answers GET {args.url}/healthz: {exc}", file=sys.stderr)
         return 2
     wall = time.perf_counter() - start
     summary = tally.summary() | {"wall_s": round(wall, 2)}

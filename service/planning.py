@@ -1,9 +1,10 @@
 """Grasp planning off the event loop: in worker processes by default, or in threads.
 
 Planning is seconds of Python per request. In a process pool it neither holds the GIL that the
-event loop and the model steps need nor takes the server down if it crashes; ``GRASP_PLANNING_
-PROCESSES=false`` runs it in threads instead (what the in-process tests use). This module does not
-import torch, so the worker processes stay small.
+event loop and the model steps need nor takes the server down if it crashes, and it runs at a
+lower CPU priority than the model steps of ``POST /views``. ``GRASP_PLANNING_PROCESSES=false``
+runs it in threads instead (what the in-process tests use). This module does not import torch,
+so the worker processes stay small.
 """
 
 from __future__ import annotations
@@ -11,6 +12,7 @@ from __future__ import annotations
 import asyncio
 import logging
 import multiprocessing
+import os
 import time
 from concurrent.futures import ProcessPoolExecutor
 from concurrent.futures.process import BrokenProcessPool
@@ -21,6 +23,9 @@ import numpy as np
 from anyio import CapacityLimiter
 
 log = logging.getLogger(__name__)
+
+#: Planner processes run at this lower CPU priority, so that model steps (POST /views) come first.
+PLANNER_NICENESS = 5
 
 
 def plan_grasps(
@@ -37,6 +42,10 @@ def plan_grasps(
     return results, time.perf_counter() - start
 
 
+def _import_planner() -> None:
+    import grasp.planner  # noqa: F401
+
+
 class Planner:
     """Runs :func:`plan_grasps`, at most ``workers`` at once, in processes or threads."""
 
@@ -50,7 +59,9 @@ class Planner:
         if self._pool is None:
             # spawn: the server has torch's thread pools running, which fork does not survive.
             context = multiprocessing.get_context("spawn")
-            self._pool = ProcessPoolExecutor(self.workers, mp_context=context)
+            self._pool = ProcessPoolExecutor(
+                self.workers, mp_context=context, initializer=os.nice, initargs=(PLANNER_NICENESS,)
+            )
         return self._pool
 
     async def plan(
@@ -70,6 +81,12 @@ class Planner:
                 self._pool = None
                 pool.shutdown(wait=False, cancel_futures=True)
             raise
+
+    def warm_up(self) -> None:
+        """Start the worker processes and import the planner there, without waiting for it."""
+        if self.processes:
+            for _ in range(self.workers):
+                self._executor().submit(_import_planner)
 
     def close(self) -> None:
         if self._pool is not None:

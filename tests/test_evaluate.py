@@ -11,6 +11,7 @@ from completion.grid import GRID_SHAPE
 from completion.model import ModelConfig, build_model, save_checkpoint
 from completion.scenes import CONDITIONS, SINGLE_OBJECT_CONDITIONS
 from grasp import evaluate as ev
+from hands.barrett import JOINT_NAMES
 
 TINY = {"channels": (2, 2, 2), "conv_kernel": 3, "embed_dim": 8, "n_heads": 2, "n_features": 8}
 KINDS = {
@@ -160,6 +161,10 @@ def test_tiny_run_fills_every_cell_that_applies(tiny_run):
                     assert value is not None and value >= 0.0, (row, condition, split)
                 else:
                     assert value is None and counts["grasped"] == 0
+    per_joint = results["joint_error_per_joint_deg"]
+    assert set(per_joint["mvp"]["camera_pan"]["test"]) == set(JOINT_NAMES)
+    assert per_joint["mvp"]["two_object_pan"]["test"] is None
+    assert set(results["pooled_joint_error_per_joint_deg"][ev.FUSION]) == set(JOINT_NAMES)
     for key in ("named_objects", "objects_dir"):
         block = results[key]
         assert len(block["objects"]) == 1
@@ -185,8 +190,10 @@ def test_tiny_run_writes_its_reports(tiny_run):
     assert len(per_view) == 3
     records = [r for r in results["per_object"] if r["table"] == "main"]
     assert len(records) == len(CONDITIONS) * 2 * len(ev.ROWS)
-    stages = results["timings_s"]["stages_summed_over_sequences"]
-    assert set(stages) == {"generation", "inference", "completion_metrics", "grasping"}
+    for kind in ("wall", "cpu"):
+        stages = results["timings_s"][f"stages_{kind}_summed_over_sequences"]
+        assert set(stages) == {"generation", "inference", "completion_metrics", "grasping"}
+        assert all(v >= 0 for v in stages.values()) and stages["grasping"] > 0
 
 
 def test_same_seed_same_numbers(tiny_run, tmp_path):
