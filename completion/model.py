@@ -84,6 +84,10 @@ class ModelConfig:
     n_layers: Transformer blocks (mvp/mvt) or LSTM layers. mlp_ratio: hidden width of the block's
     MLP in units of D. kernel: Performer kernel (mvp only). n_features: M for the FAVOR+ kernel.
     pos_encoding / pos_base: sinusoidal encoding of the view index t, frequencies pos_base^(-2i/D).
+    qk_norm: normalise each head's query and key per position (LayerNorm without parameters)
+    before attention. It bounds ‖k‖, so FAVOR+ key features cannot underflow to zero and make
+    the normaliser's gradient overflow (training otherwise diverged to NaN); per position, so
+    nothing crosses time. On for the shipped mvp models; False keeps older checkpoints exact.
     seed: weight initialisation and the initial FAVOR+ draw.
     """
 
@@ -100,6 +104,7 @@ class ModelConfig:
     n_features: int = 128
     pos_encoding: PositionalEncoding = "sinusoidal"
     pos_base: float = 10000.0
+    qk_norm: bool = False
     seed: int = 0
 
     def __post_init__(self) -> None:
@@ -159,10 +164,10 @@ class ModelConfig:
 
 DEFAULT_CONFIGS: dict[str, ModelConfig] = {
     "single_view": ModelConfig(kind="single_view"),
-    "mvp": ModelConfig(kind="mvp", kernel="softmax"),
-    "mvp_relu": ModelConfig(kind="mvp", kernel="relu"),
-    "mvp3": ModelConfig(kind="mvp", kernel="softmax"),
-    "mvp6": ModelConfig(kind="mvp", kernel="softmax"),
+    "mvp": ModelConfig(kind="mvp", kernel="softmax", qk_norm=True),
+    "mvp_relu": ModelConfig(kind="mvp", kernel="relu", qk_norm=True),
+    "mvp3": ModelConfig(kind="mvp", kernel="softmax", qk_norm=True),
+    "mvp6": ModelConfig(kind="mvp", kernel="softmax", qk_norm=True),
     "mvt": ModelConfig(kind="mvt"),
     "lstm": ModelConfig(kind="lstm"),
 }
@@ -286,6 +291,7 @@ class CausalSelfAttention(nn.Module):
         self.head_dim = config.embed_dim // config.n_heads
         self.qkv = nn.Linear(config.embed_dim, 3 * config.embed_dim)
         self.out = nn.Linear(config.embed_dim, config.embed_dim)
+        self.qk_norm = config.qk_norm
         self.features: FeatureMap | None = None
         if mechanism == "performer":
             self.features = FeatureMap(
@@ -299,7 +305,11 @@ class CausalSelfAttention(nn.Module):
         """x (..., D) -> q, k, v each (..., H, E)."""
         q, k, v = self.qkv(x).chunk(3, dim=-1)
         shape = (*x.shape[:-1], self.n_heads, self.head_dim)
-        return q.view(shape), k.view(shape), v.view(shape)
+        q, k, v = q.view(shape), k.view(shape), v.view(shape)
+        if self.qk_norm:  # per position and head: no statistic crosses views
+            q = nn.functional.layer_norm(q, (self.head_dim,))
+            k = nn.functional.layer_norm(k, (self.head_dim,))
+        return q, k, v
 
     def forward(self, x: Tensor) -> Tensor:
         """Parallel form: x (B, L, D) -> (B, L, D)."""

@@ -138,6 +138,7 @@ def train(args: argparse.Namespace) -> dict:
     tic = time.perf_counter()
     budget_s = args.minutes * 60 if args.minutes else float("inf")
     done = False
+    skipped = 0
     while epoch < args.epochs and not done:
         order = torch.randperm(n_train, generator=gen)
         bar = tqdm(
@@ -153,7 +154,11 @@ def train(args: argparse.Namespace) -> dict:
             y = train_set["targets"][idx, first : first + args.views].to(device).float()
             loss = F.binary_cross_entropy_with_logits(model(x), y, pos_weight=pos_weight)
             opt.zero_grad(set_to_none=True)
+            if not torch.isfinite(loss):
+                skipped += 1  # never let one bad batch poison the weights
+                continue
             loss.backward()
+            torch.nn.utils.clip_grad_norm_(model.parameters(), args.clip)
             opt.step()
             step += 1
             bar.set_postfix(loss=f"{loss.item():.4f}")
@@ -164,7 +169,8 @@ def train(args: argparse.Namespace) -> dict:
         scores = validate(model, val_set)
         mean = scores["0.50"]["mean"]
         history.append(
-            {"epoch": epoch, "step": step, "val_jaccard": mean, "loss": float(loss.item())}
+            {"epoch": epoch, "step": step, "val_jaccard": mean, "loss": float(loss.item()),
+             "skipped": skipped}
         )
         wall = elapsed_before + time.perf_counter() - tic
         print(
@@ -328,6 +334,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--batch-size", type=int, default=4)
     p.add_argument("--lr", type=float, default=1e-3)
     p.add_argument("--pos-weight", type=float, default=2.0)
+    p.add_argument("--clip", type=float, default=1.0, help="gradient norm clip")
     p.add_argument(
         "--config",
         type=_overrides,
