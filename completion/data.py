@@ -177,7 +177,8 @@ def show(path: str | Path, out: str | Path) -> Path:
     return out
 
 
-def _parse_conditions(text: str) -> list[str]:
+def parse_conditions(text: str) -> list[str]:
+    """CLI type: 'all' or a comma list of conditions (argparse error text otherwise)."""
     names = list(CONDITIONS) if text == "all" else [c.strip() for c in text.split(",") if c.strip()]
     bad = [c for c in names if c not in CONDITIONS]
     if bad or not names:
@@ -204,7 +205,7 @@ def main(argv: list[str] | None = None) -> int:
     g = sub.add_parser("generate", help="render sequences and write shards")
     g.add_argument(
         "--condition",
-        type=_parse_conditions,
+        type=parse_conditions,
         default=list(CONDITIONS),
         help="a condition, a comma list, or 'all' (default all)",
     )

@@ -33,7 +33,7 @@ import numpy as np
 import torch
 from torch.nn import functional as F
 
-from completion.data import generate, load_sequence
+from completion.data import generate, load_sequence, parse_conditions
 from completion.model import (
     DEFAULT_CONFIGS,
     CompletionModel,
@@ -265,16 +265,6 @@ def model_card(paths: list[Path]) -> str:
     ])
 
 
-def _conditions(text: str) -> list[str]:
-    names = list(CONDITIONS) if text == "all" else [c for c in text.split(",") if c]
-    bad = [c for c in names if c not in CONDITIONS]
-    if bad or not names:
-        raise argparse.ArgumentTypeError(
-            f"unknown condition(s) {bad}; expected 'all' or a comma list of {', '.join(CONDITIONS)}"
-        )
-    return names
-
-
 def _overrides(text: str) -> dict:
     """``key=value,key=value`` ModelConfig overrides; tuples as ``channels=8:16:32``."""
     out: dict = {}
@@ -315,7 +305,7 @@ def main(argv: list[str] | None = None) -> int:
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     p.add_argument("--model", choices=sorted(DEFAULT_CONFIGS), required=True)
-    p.add_argument("--conditions", type=_conditions, default=list(CONDITIONS))
+    p.add_argument("--conditions", type=parse_conditions, default=list(CONDITIONS))
     p.add_argument("--views", type=int, default=12, help="views per training window (3, 6, 12)")
     p.add_argument("--train-dir", type=Path, default=Path("data/train"))
     p.add_argument("--val-dir", type=Path, default=Path("data/val"))

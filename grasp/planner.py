@@ -208,6 +208,19 @@ def rank(
     return [scored[i] for i in ranked][: len(results) if top_k is None else top_k]
 
 
+def read_mesh_argument(parser, path, *, scale: float = 1.0) -> trimesh.Trimesh:
+    """A command-line mesh file (``pathlib.Path``), scaled; an ``argparse`` parser error when it
+    is missing or holds no triangles."""
+    if not path.is_file():
+        parser.error(f"no such mesh file: {path}")
+    mesh = trimesh.load(path, force="mesh")
+    if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
+        parser.error(f"{path} holds no triangles")
+    if scale != 1.0:
+        mesh.apply_scale(scale)
+    return mesh
+
+
 def main(argv: Sequence[str] | None = None) -> None:
     """``python -m grasp.planner MESH``: plan, print the best grasps and the time taken."""
     import argparse
@@ -223,12 +236,7 @@ def main(argv: Sequence[str] | None = None) -> None:
     parser.add_argument("--top-k", type=int, default=5, help="grasps to print")
     parser.add_argument("--scale", type=float, default=1.0, help="multiply the mesh by this")
     args = parser.parse_args(argv)
-    if not args.mesh.is_file():
-        parser.error(f"no such mesh file: {args.mesh}")
-    mesh = trimesh.load(args.mesh, force="mesh")
-    if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
-        parser.error(f"{args.mesh} holds no triangles")
-    mesh.apply_scale(args.scale)
+    mesh = read_mesh_argument(parser, args.mesh, scale=args.scale)
     wall, cpu = time.perf_counter(), time.process_time()
     results = plan(mesh, n_candidates=args.candidates, seed=args.seed, top_k=args.top_k)
     wall, cpu = time.perf_counter() - wall, time.process_time() - cpu

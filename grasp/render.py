@@ -134,15 +134,9 @@ def main(argv: Sequence[str] | None = None) -> None:
     parser.add_argument("--scale", type=float, default=1.0, help="multiply the mesh by this")
     args = parser.parse_args(argv)
 
-    from grasp.planner import plan
+    from grasp.planner import plan, read_mesh_argument
 
-    if not args.mesh.is_file():
-        parser.error(f"no such mesh file: {args.mesh}")
-    mesh = trimesh.load(args.mesh, force="mesh")
-    if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
-        parser.error(f"{args.mesh} holds no triangles")
-    if args.scale != 1.0:
-        mesh.apply_scale(args.scale)
+    mesh = read_mesh_argument(parser, args.mesh, scale=args.scale)
     best = plan(mesh, n_candidates=args.candidates, seed=args.seed, top_k=1)[0]
     out = save_grasp_figure(mesh, best, args.out, title=args.mesh.name)
     print(f"{out}: {_caption(best)}")
