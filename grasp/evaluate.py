@@ -76,7 +76,10 @@ ROW_LABELS = {
     "mvp3": "MVP3",
     "mvp6": "MVP6",
     FUSION: "Registered fusion (ref.)",
+    "true_mesh": "True mesh (upper bound)",
 }
+#: The grasp-success row of grasps planned on the true mesh itself (the physics upper bound).
+TRUE_MESH = "true_mesh"
 #: Column order of the paper's tables.
 PAPER_ORDER: tuple[str, ...] = (
     "object_hiding",
@@ -100,7 +103,19 @@ METRIC_TITLES = {
     "fscore_2": "F-score@2% (mean over views; higher is better)",
     "joint_error_deg": "Table III: grasp joint error, degrees (final view; lower is better)",
 }
-HIGHER_IS_BETTER = {"jaccard": True, "fscore_1": True, "fscore_2": True, "joint_error_deg": False}
+HIGHER_IS_BETTER = {
+    "jaccard": True,
+    "fscore_1": True,
+    "fscore_2": True,
+    "joint_error_deg": False,
+    "grasp_success": True,
+}
+#: Lift-test success rate (pybullet dynamics, final view of the single-object conditions).
+GRASP_SUCCESS = "grasp_success"
+GRASP_SUCCESS_TITLE = (
+    "Grasp success: planned on the prediction, lifted and shaken on the true object in pybullet "
+    "(final view; higher is better)"
+)
 #: The condition of the named-object and ``--objects`` tables.
 OBJECT_TABLE_CONDITION = "camera_pan"
 NAMED_OBJECTS_TABLE = "named"
@@ -156,22 +171,25 @@ class Preset:
     named: int
     candidates: int
     grasp_count: int  # sequences per (condition, split) that are also grasped
+    physics_count: int  # of the grasped ones, how many are also lift-tested in pybullet
 
 
 #: Sizes per preset, from measured costs on one core (process time): generating a sequence
 #: 0.2–0.45 s; running the six models over it 0.2 s; Jaccard + F-score of 12 views × 7 rows
 #: 1.7 s; one joint error (collision model of the completion, plan, two re-grasps)
 #: ≈ 0.15 s + 0.02 s per planner candidate, × 7 rows per grasped sequence.
+#: One pybullet lift test (grasp success) ≈ 0.55 s, × 8 (7 rows + the true mesh) per
+#: lift-tested sequence.
 PRESETS: dict[str, Preset] = {
     # ≈ 90 core-seconds: a smoke test of the whole chain (about a minute on two cores).
-    "quick": Preset(count=2, named=3, candidates=8, grasp_count=2),
+    "quick": Preset(count=2, named=3, candidates=8, grasp_count=2, physics_count=1),
     # ≈ 600 core-seconds, about 5 minutes on two cores: the command with no arguments.
     # 100 sequences (10 per condition and split), all 60 single-object ones grasped with
     # 24 candidates (the planner's 24 principal-axis poses), and the 10 named objects.
-    "default": Preset(count=10, named=10, candidates=24, grasp_count=10),
+    "default": Preset(count=10, named=10, candidates=24, grasp_count=10, physics_count=2),
     # ≈ 4,500 core-seconds (about 40 minutes on two cores; use --workers on a bigger machine):
     # 50 sequences per cell and the planner's full 64 candidates.
-    "full": Preset(count=50, named=10, candidates=64, grasp_count=50),
+    "full": Preset(count=50, named=10, candidates=64, grasp_count=50, physics_count=10),
 }
 
 
@@ -184,6 +202,7 @@ class Settings:
     conditions: tuple[str, ...] = CONDITIONS
     count: int = PRESETS["default"].count
     grasp_count: int = PRESETS["default"].grasp_count
+    physics_count: int = PRESETS["default"].physics_count
     named: int = PRESETS["default"].named
     objects: tuple[str, ...] = ()  # file: ids of --objects DIR
     views: int = VIEWS
@@ -203,7 +222,15 @@ class Settings:
         missing = [r for r in self.rows if r != FUSION and r not in dict(self.model_paths)]
         if missing:
             raise ValueError(f"no checkpoint path given for model rows {missing}")
-        for name in ("count", "grasp_count", "named", "candidates", "samples", "workers"):
+        for name in (
+            "count",
+            "grasp_count",
+            "physics_count",
+            "named",
+            "candidates",
+            "samples",
+            "workers",
+        ):
             if getattr(self, name) < (1 if name in ("candidates", "samples", "workers") else 0):
                 raise ValueError(f"{name} out of range: {getattr(self, name)}")
         if self.views < 2:
@@ -221,9 +248,16 @@ class Job:
     pool: tuple[str, ...] | None = None  # object ids to draw from (None: the split's library)
     grasp: bool = False
     example: bool = False
+    physics: bool = False  # also lift-test the grasps in pybullet (grasped jobs only)
 
 
-STAGES: tuple[str, ...] = ("generation", "inference", "completion_metrics", "grasping")
+STAGES: tuple[str, ...] = (
+    "generation",
+    "inference",
+    "completion_metrics",
+    "grasping",
+    "physics",
+)
 
 
 @dataclass
@@ -267,6 +301,8 @@ class SequenceResult:
     grasps: dict[str, dict] = field(default_factory=dict)
     timings: Timings = field(default_factory=Timings)
     example: dict | None = None  # final-view grids for the figures
+    # row (and TRUE_MESH) -> lift test summary (only for physics jobs)
+    physics: dict[str, dict] = field(default_factory=dict)
 
 
 # ------------------------------------------------------------------------------ fusion baseline
@@ -425,18 +461,27 @@ class Evaluator:
                 per_view[row]["fscore_2"].append(scores[1].fscore)
         clock.charge("completion_metrics")
         grasps: dict[str, dict] = {}
+        physics: dict[str, dict] = {}
         if job.grasp and job.condition in SINGLE_OBJECT_CONDITIONS:
             from grasp.sim import CollisionScene
 
-            truth_mesh = CollisionScene(truth_mesh_in_latest_camera(seq))  # built once, reused
+            truth = truth_mesh_in_latest_camera(seq)
+            truth_mesh = CollisionScene(truth)  # built once, reused
             seed = _key_seed(s.seed, job.table, job.condition, job.split, job.index, "grasp")
+            planned = {}
             for row in s.rows:
                 mesh = metrics.mesh_or_none(
                     probs[row][-1], seq.grid_to_camera[-1], threshold=self.thresholds[row]
                 )
-                grasps[row] = metrics.grasp_joint_error(
+                result = metrics.grasp_joint_error(
                     mesh, truth_mesh, n_candidates=s.candidates, seed=seed
-                ).as_dict()
+                )
+                grasps[row] = result.as_dict()
+                planned[row] = result.planned
+            clock.charge("grasping")
+            if job.physics:
+                physics = self._lift_tests(job, truth, truth_mesh, planned, seed)
+                clock.charge("physics")
         clock.charge("grasping")
         example = None
         if job.example:
@@ -450,7 +495,35 @@ class Evaluator:
                 "probabilities": {r: probs[r][-1] for r in _figure_rows(list(grasps))},
                 "thresholds": dict(self.thresholds),
             }
-        return SequenceResult(job, list(seq.meta["object_ids"]), per_view, grasps, timings, example)
+        return SequenceResult(
+            job, list(seq.meta["object_ids"]), per_view, grasps, timings, example, physics
+        )
+
+    def _lift_tests(self, job: Job, truth, truth_scene, planned: dict, plan_seed: int) -> dict:
+        """row -> lift test of the grasp planned on that row's prediction, executed on the true
+        object with a guarded (contact) approach; TRUE_MESH -> a grasp planned on the truth."""
+        from grasp.physics import lift_test
+        from grasp.planner import plan
+
+        s = self.settings
+        seed = _key_seed(s.seed, job.table, job.condition, job.split, job.index, "physics")
+
+        def run(grasp, approach: str) -> dict:
+            if grasp is None:
+                return {"success": False, "reason": "no grasp planned"}
+            with _quiet_stdout():
+                r = lift_test(truth, grasp, seed=seed, approach=approach)
+            return {
+                "success": bool(r.success),
+                "reason": r.reason,
+                "displacement": round(float(r.displacement), 6),
+                "held_s": round(float(r.held_s), 4),
+            }
+
+        out = {row: run(planned[row], "contact") for row in s.rows}
+        best = plan(truth_scene, n_candidates=s.candidates, seed=plan_seed, top_k=1)
+        out[TRUE_MESH] = run(best[0] if best else None, "planned")
+        return out
 
 
 _WORKER: Evaluator | None = None
@@ -486,6 +559,7 @@ def make_jobs(settings: Settings) -> list[Job]:
                         index,
                         grasp=index < settings.grasp_count,
                         example=split == "test" and index == 0,
+                        physics=index < min(settings.grasp_count, settings.physics_count),
                     )
                 )
     named = object_ids("test", sources=("named",))[: settings.named]
@@ -610,9 +684,27 @@ def aggregate(results: list[SequenceResult], settings: Settings, table: str) -> 
                     if cell
                     else []
                 )
+    success: dict = {}
+    success_counts: dict = {}
+    for row in (*settings.rows, TRUE_MESH):
+        success[row], success_counts[row] = {}, {}
+        for c in conditions:
+            success[row][c], success_counts[row][c] = {}, {}
+            for s in splits:
+                tested = [
+                    r.physics[row]
+                    for r in mine
+                    if r.job.condition == c and r.job.split == s and row in r.physics
+                ]
+                held = sum(t["success"] for t in tested)
+                applies = c in SINGLE_OBJECT_CONDITIONS and tested
+                success[row][c][s] = round(held / len(tested), 4) if applies else None
+                success_counts[row][c][s] = {"tested": len(tested), "held": held}
+    tables[GRASP_SUCCESS] = success
     return {
         "tables": tables,
         "counts": counts,
+        "grasp_success_counts": success_counts,
         "per_view_jaccard": per_view,
         "grasp_failures": failures,
         "joint_error_per_joint_deg": per_joint,
@@ -673,6 +765,7 @@ def build_results(results: list[SequenceResult], settings: Settings, wall: dict)
     out = {
         "tables": main["tables"],
         "counts": main["counts"],
+        "grasp_success_counts": main["grasp_success_counts"],
         "grasp_failures": main["grasp_failures"],
         "joint_error_per_joint_deg": main["joint_error_per_joint_deg"],
         "pooled_joint_error_per_joint_deg": _pooled_per_joint(results, settings),
@@ -723,6 +816,8 @@ def _config_dict(settings: Settings) -> dict:
 def _fmt(value: float | None, metric: str) -> str:
     if value is None:
         return "—"
+    if metric == GRASP_SUCCESS:
+        return f"{100 * value:.0f}%"
     return f"{value:.2f}°" if metric == "joint_error_deg" else f"{value:.2f}"
 
 
@@ -743,7 +838,7 @@ def markdown_table(tables: dict, metric: str, *, conditions: Iterable[str] | Non
     if conditions is None:
         conditions = next(iter(tables.values()), {})
     conditions = [c for c in PAPER_ORDER if c in set(conditions)]
-    if metric == "joint_error_deg":
+    if metric in ("joint_error_deg", GRASP_SUCCESS):
         conditions = [c for c in conditions if c in SINGLE_OBJECT_CONDITIONS]
     header = (
         "| Model | "
@@ -751,7 +846,7 @@ def markdown_table(tables: dict, metric: str, *, conditions: Iterable[str] | Non
         + " |"
     )
     lines = [header, "|" + "---|" * (1 + 2 * len(conditions))]
-    learned = [r for r in rows if r != FUSION]
+    learned = [r for r in rows if r not in (FUSION, TRUE_MESH)]
     for row in rows:
         cells = []
         for c in conditions:
@@ -760,7 +855,7 @@ def markdown_table(tables: dict, metric: str, *, conditions: Iterable[str] | Non
                 best = _best([tables[r].get(c, {}).get(split) for r in learned], metric)
                 text = _fmt(v, metric)
                 tie = v is not None and best is not None and round(v, 2) == round(best, 2)
-                if tie and row != FUSION and len(learned) > 1:
+                if tie and row in learned and len(learned) > 1:
                     text = f"**{text}**"
                 cells.append(text)
         lines.append(f"| {ROW_LABELS[row]} | " + " | ".join(cells) + " |")
@@ -811,6 +906,42 @@ def markdown_timings(results: dict) -> str:
     return "\n".join(lines)
 
 
+def _markdown_grasp_success(results: dict) -> list[str]:
+    """The lift-test table with its counts (empty when nothing was lift-tested)."""
+    table = results["tables"].get(GRASP_SUCCESS)
+    counts = results.get("grasp_success_counts") or {}
+    if not table or not any(
+        n["tested"] for per_c in counts.values() for per_s in per_c.values() for n in per_s.values()
+    ):
+        return []
+    lines = []
+    for row, per_c in counts.items():
+        cells = [
+            f"{CONDITION_LABELS[c]} {s} {n['held']}/{n['tested']}"
+            for c, per_s in per_c.items()
+            if c in SINGLE_OBJECT_CONDITIONS
+            for s, n in per_s.items()
+            if n["tested"]
+        ]
+        lines.append(f"- {ROW_LABELS[row]}: " + ", ".join(cells))
+    cfg = results["config"]
+    return [
+        f"## {GRASP_SUCCESS_TITLE}",
+        "",
+        f"The first {cfg['physics_count']} grasped sequences per condition and split. Model rows: "
+        "the grasp planned on the prediction, approached on the true object until contact "
+        "(guarded move), closed, lifted 10 cm and shaken. True mesh (upper bound): the grasp "
+        "planned on the true mesh, executed as planned.",
+        "",
+        markdown_table(table, GRASP_SUCCESS),
+        "",
+        "Lift tests held / run:",
+        "",
+        *lines,
+        "",
+    ]
+
+
 def markdown_report(results: dict) -> str:
     cfg = results["config"]
     parts = [
@@ -851,6 +982,7 @@ def markdown_report(results: dict) -> str:
             ],
             "",
         ]
+    parts += _markdown_grasp_success(results)
     counts = results["counts"]
     lines = []
     for row, per_cond in counts.items():
@@ -1194,6 +1326,14 @@ def build_parser() -> argparse.ArgumentParser:
         help="of those, how many are also grasped (single-object conditions)",
     )
     p.add_argument(
+        "--physics-count",
+        type=_positive(0),
+        default=None,
+        metavar="N",
+        help="of the grasped sequences, how many are also lift-tested in pybullet dynamics "
+        "(grasp success; 0 = none; default: 2, 1 with --quick, 10 with --full)",
+    )
+    p.add_argument(
         "--named",
         type=_positive(0),
         default=None,
@@ -1278,6 +1418,9 @@ def settings_from_args(args: argparse.Namespace, parser: argparse.ArgumentParser
         grasp_count=min(
             count, args.grasp_count if args.grasp_count is not None else preset.grasp_count
         ),
+        physics_count=args.physics_count
+        if args.physics_count is not None
+        else preset.physics_count,
         named=args.named if args.named is not None else preset.named,
         objects=objects,
         views=args.views,

@@ -74,11 +74,32 @@ def test_bad_command_line_input_says_what_was_expected(capsys):
         (["--count", "0"], "integer >= 1"),
         (["--workers", "two"], "expected an integer"),
         (["--quick", "--full"], "not allowed with argument"),
+        (["--physics-count", "-1"], "integer >= 0"),
+        (["--physics-count", "some"], "expected an integer"),
     ):
         with pytest.raises(SystemExit) as exc:
             ev.main(argv)
         assert exc.value.code == 2
         assert expected in capsys.readouterr().err
+
+
+def test_physics_count_comes_from_the_preset_or_the_command_line():
+    parser = ev.build_parser()
+    models = ["--models", ev.FUSION]
+    for argv, expected in (
+        ([], 2),
+        (["--quick"], 1),
+        (["--full"], 10),
+        (["--physics-count", "0"], 0),
+        (["--quick", "--physics-count", "3"], 3),
+    ):
+        args = parser.parse_args(models + argv)
+        assert ev.settings_from_args(args, parser).physics_count == expected, argv
+    jobs = ev.make_jobs(
+        ev.Settings(rows=(ev.FUSION,), count=3, grasp_count=2, physics_count=5, named=0)
+    )
+    main = [j for j in jobs if j.table == ev.MAIN_TABLE and j.split == "test"]
+    assert [j.physics for j in main[:3]] == [True, True, False]  # grasped ones only
 
 
 def test_missing_weights_name_the_file_and_the_train_command(tmp_path, capsys):
@@ -121,6 +142,8 @@ def tiny_run(tmp_path_factory):
         "--count",
         "1",
         "--grasp-count",
+        "1",
+        "--physics-count",
         "1",
         "--named",
         "1",
@@ -171,6 +194,18 @@ def test_tiny_run_fills_every_cell_that_applies(tiny_run):
         for metric in ("jaccard", "fscore_1", "fscore_2", "joint_error_deg"):
             assert all(block["tables"][metric][row] is not None for row in ev.ROWS), (key, metric)
     assert results["objects_dir"]["objects"][0].endswith("box.stl")
+    success = tables["grasp_success"]
+    assert set(success) == {*ev.ROWS, ev.TRUE_MESH}
+    for row in success:
+        for condition in CONDITIONS:
+            for split in ("train", "test"):
+                value = success[row][condition][split]
+                n = results["grasp_success_counts"][row][condition][split]
+                if condition in SINGLE_OBJECT_CONDITIONS:
+                    assert n["tested"] == 1 and value in (0.0, 1.0), (row, condition, split)
+                    assert value == n["held"] / n["tested"]
+                else:
+                    assert value is None and n["tested"] == 0, (row, condition, split)
 
 
 def test_tiny_run_writes_its_reports(tiny_run):
@@ -185,6 +220,7 @@ def test_tiny_run_writes_its_reports(tiny_run):
         assert (out / name).stat().st_size > 0, name
     report = (out / "results.md").read_text()
     assert "Table I: Jaccard" in report and "Registered fusion" in report
+    assert "Grasp success" in report and "True mesh (upper bound)" in report
     assert results["config"]["views"] == 3 and results["config"]["seed"] == 3
     per_view = results["per_view_jaccard"]["mvp"]["object_hiding"]["test"]
     assert len(per_view) == 3
@@ -192,8 +228,15 @@ def test_tiny_run_writes_its_reports(tiny_run):
     assert len(records) == len(CONDITIONS) * 2 * len(ev.ROWS)
     for kind in ("wall", "cpu"):
         stages = results["timings_s"][f"stages_{kind}_summed_over_sequences"]
-        assert set(stages) == {"generation", "inference", "completion_metrics", "grasping"}
+        assert set(stages) == {
+            "generation",
+            "inference",
+            "completion_metrics",
+            "grasping",
+            "physics",
+        }
         assert all(v >= 0 for v in stages.values()) and stages["grasping"] > 0
+        assert stages["physics"] > 0
 
 
 def test_same_seed_same_numbers(tiny_run, tmp_path):
