@@ -72,7 +72,8 @@ class Intrinsics:
 DEFAULT_INTRINSICS = Intrinsics.from_fov(320, 240, 42.5)
 
 
-def _as_points(points: np.ndarray, name: str = "points") -> np.ndarray:
+def as_points(points: np.ndarray, name: str = "points") -> np.ndarray:
+    """``points`` as a finite (n, 3) float64 array; ValueError saying what was expected."""
     pts = np.asarray(points, dtype=np.float64)
     if pts.ndim != 2 or pts.shape[1] != 3:
         raise ValueError(f"{name} must be an (n, 3) array, got shape {pts.shape}")
@@ -103,7 +104,7 @@ def points_to_indices(
     Indices may lie outside [0, 40); callers mask with :func:`in_grid`.
     """
     t = _check_transform(grid_to_camera)
-    pts = _as_points(points)
+    pts = as_points(points)
     idx = np.linalg.solve(t[:3, :3], (pts - t[:3, 3]).T).T
     if rounded:
         return np.floor(idx + 0.5).astype(np.int64)
@@ -121,7 +122,7 @@ def fit_grid(points: np.ndarray) -> np.ndarray:
     Bounding-box centre at index (20, 20, 18); largest extent across 32 voxels (pitch no smaller
     than :data:`MIN_PITCH`). A function of the points alone.
     """
-    pts = _as_points(points)
+    pts = as_points(points)
     if len(pts) == 0:
         raise ValueError("fit_grid needs at least one observed point")
     lo, hi = pts.min(axis=0), pts.max(axis=0)
@@ -142,7 +143,7 @@ def voxel_centers(grid_to_camera: np.ndarray) -> np.ndarray:
 def voxelize_points(points: np.ndarray, grid_to_camera: np.ndarray) -> np.ndarray:
     """(40, 40, 40) bool: a voxel is occupied when at least one point falls in it."""
     occ = np.zeros(GRID_SHAPE, dtype=bool)
-    pts = _as_points(points)
+    pts = as_points(points)
     if len(pts) == 0:
         return occ
     idx = points_to_indices(pts, grid_to_camera)
@@ -167,7 +168,7 @@ def voxelize_mesh(
     """
     import igl
 
-    v = _as_points(vertices, "vertices")
+    v = as_points(vertices, "vertices")
     f = np.asarray(faces, dtype=np.int64)
     if f.ndim != 2 or f.shape[1] != 3 or len(f) == 0:
         raise ValueError(f"faces must be a non-empty (f, 3) int array, got shape {f.shape}")

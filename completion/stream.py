@@ -84,7 +84,7 @@ class CompletionStream:
                 raise ValueError("a depth image needs its intrinsics")
             points = G.depth_to_points(depth, intrinsics, mask)
         if grid is None:
-            pts = G._as_points(points)
+            pts = G.as_points(points)
             if len(pts):
                 transform = G.fit_grid(pts)
             else:

@@ -616,8 +616,13 @@ class DynamicWorld:
         if force is None:
             return
         position, orientation = c.getBasePositionAndOrientation(self.object_id)
-        self._support = c.createConstraint(
-            self.object_id,
+        self._support = self._fix_to_world(self.object_id, position, orientation)
+        c.changeConstraint(self._support, maxForce=float(force))
+
+    def _fix_to_world(self, body: int, position, orientation) -> int:
+        """A fixed constraint holding ``body``'s base at a world pose (see changeConstraint)."""
+        return self.client.createConstraint(
+            body,
             -1,
             -1,
             -1,
@@ -627,7 +632,6 @@ class DynamicWorld:
             position,
             childFrameOrientation=orientation,
         )
-        c.changeConstraint(self._support, maxForce=float(force))
 
     # -- the hand --------------------------------------------------------------------------------
     def place_hand(
@@ -651,17 +655,7 @@ class DynamicWorld:
         for name, value in zip(JOINT_NAMES, np.radians(joints_deg), strict=True):
             c.resetJointState(self.hand_id, self.joints[name].index, float(value), 0.0)
         if self._constraint is None:
-            self._constraint = c.createConstraint(
-                self.hand_id,
-                -1,
-                -1,
-                -1,
-                pybullet.JOINT_FIXED,
-                [0.0, 0.0, 0.0],
-                [0.0, 0.0, 0.0],
-                start,
-                childFrameOrientation=self._home[1],
-            )
+            self._constraint = self._fix_to_world(self.hand_id, start, self._home[1])
         self.move_hand(offset)
 
     def move_hand(self, offset: Sequence[float]) -> None:
