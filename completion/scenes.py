@@ -22,6 +22,7 @@ objects (target, solid) in it.
 
 from __future__ import annotations
 
+import warnings
 import zlib
 from dataclasses import dataclass, field
 
@@ -64,6 +65,20 @@ class Sequence:
 def _rng(condition: str, split: str, index: int, seed: int) -> np.random.Generator:
     key = zlib.crc32(f"{condition}/{split}".encode())
     return np.random.default_rng([seed, key, index])
+
+
+def _load_or_redraw(
+    object_id: str, ids: list[str], rng: np.random.Generator, *, tries: int = 20
+) -> tuple[trimesh.Trimesh, str]:
+    """Load ``object_id``; if its mesh is unusable, warn naming it and draw another from ``ids``
+    with the sequence's generator (deterministic; sequences of good objects are unchanged)."""
+    for _ in range(tries):
+        try:
+            return load_object(object_id), object_id
+        except ValueError as exc:
+            warnings.warn(f"skipping object {object_id}: {exc}", stacklevel=3)
+            object_id = str(ids[int(rng.integers(len(ids)))])
+    raise ValueError(f"no loadable object after {tries} draws from a pool of {len(ids)}")
 
 
 def _random_rotation(rng: np.random.Generator) -> np.ndarray:
@@ -187,7 +202,10 @@ def make_sequence(
         raise ValueError("the object pool is empty")
     n_objects = 2 if condition in ("two_object_pan", "slide_behind") else 1
     chosen = [str(ids[i]) for i in rng.choice(len(ids), size=n_objects, replace=len(ids) < 2)]
-    meshes = [load_object(i) for i in chosen]
+    meshes = []
+    for k, object_id in enumerate(chosen):
+        mesh, chosen[k] = _load_or_redraw(object_id, ids, rng)
+        meshes.append(mesh)
 
     if condition == "two_object_pan":
         meshes, poses = _pair(rng, *meshes)

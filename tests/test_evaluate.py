@@ -34,7 +34,7 @@ def _tiny_weights(folder, *, logit: float | None = 2.0) -> dict[str, str]:
     paths = {}
     for i, (name, kind) in enumerate(KINDS.items()):
         model = build_model(ModelConfig(kind=kind, seed=i, **TINY))
-        last = model.decoder.deconvs[-1]
+        last = model.decoder.out
         if logit is not None:
             with torch.no_grad():
                 last.weight.zero_()

@@ -56,3 +56,17 @@ def test_bad_ids_are_explained():
         O.load_object("nonsense")
     with pytest.raises(ValueError, match="not found"):
         O.load_object("file:/does/not/exist.obj")
+
+
+@pytest.mark.slow
+def test_every_object_of_every_split_loads_except_the_listed_unreadable_ones():
+    failed = set()
+    for split in O.SPLITS:
+        for object_id in O.object_ids(split, sources=("proc", "urdf", "named")):
+            try:
+                mesh = O.load_object(object_id)
+            except ValueError:
+                failed.add(object_id)
+                continue
+            assert len(mesh.faces) > 0 and np.isfinite(mesh.vertices).all(), object_id
+    assert failed == O.UNREADABLE

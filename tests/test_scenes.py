@@ -77,3 +77,19 @@ def test_bad_arguments():
         make_sequence("pan", "train", 0)
     with pytest.raises(ValueError, match="split must be one of"):
         make_sequence("camera_pan", "training", 0)
+
+
+def test_an_unreadable_object_is_skipped_with_a_warning_that_names_it(renderer):
+    import warnings
+
+    pool = ["urdf/168", "proc/box/0"]
+    for index in range(20):  # find a draw that meets the bad object first
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            seq = make_sequence("camera_pan", "train", index, 0, pool=pool, renderer=renderer)
+        messages = [str(w.message) for w in caught]
+        if any("skipping object urdf/168" in m for m in messages):
+            assert seq.meta["object_ids"] == ["proc/box/0"] and seq.targets.any()
+            return
+        assert seq.meta["object_ids"] == ["proc/box/0"]
+    raise AssertionError("no draw met urdf/168")

@@ -452,7 +452,7 @@ def test_no_object_yet_is_409(client):
 def test_empty_completion_is_409(tmp_path):
     model = build_model(TINY)
     with torch.no_grad():
-        model.decoder.deconvs[-1].bias.fill_(-50.0)  # every voxel empty
+        model.decoder.out.bias.fill_(-50.0)  # every voxel empty
     path = tmp_path / "empty.pt"
     save_checkpoint(model, path)
     with TestClient(create_app(settings(tmp_path, str(path)))) as client:
