@@ -254,7 +254,7 @@ class Decoder(nn.Module):
             self.ups.append(nn.ConvTranspose3d(c_deep, c_skip, 2, stride=2))
             self.fuse.append(nn.Sequential(*_conv(2 * c_skip, c_skip, 3, config.norm)))
         self.top = nn.ConvTranspose3d(chans[0], config.top_channels, 2, stride=2)
-        self.out = nn.Conv3d(config.top_channels + 1, 1, 3, padding=1)
+        self.out = Conv3d(config.top_channels + 1, 1, 3, padding=1)
 
     def forward(self, bottom: Tensor, skips: list[Tensor], grids: Tensor) -> Tensor:
         x = self.bottom(bottom)
@@ -266,9 +266,33 @@ class Decoder(nn.Module):
         return self.out(x).squeeze(1)  # (N, G, G, G)
 
 
+class Conv3d(nn.Conv3d):
+    """``nn.Conv3d`` that also uses oneDNN for a single frame in inference.
+
+    PyTorch sends a CPU convolution with batch 1 and a small input (N·C·D·H under 20,480, i.e.
+    every layer of this U-Net when one view is streamed) to its native kernel, which measured 10×
+    slower here than oneDNN (5.2 ms against 0.6 ms for 16 → 16 channels at 20³). Without
+    gradients this calls oneDNN directly; results agree to float rounding (~1e-6).
+    """
+
+    def forward(self, x: Tensor) -> Tensor:
+        if (
+            x.shape[0] < 2
+            and x.device.type == "cpu"
+            and x.dtype == torch.float32
+            and self.weight.dtype == torch.float32
+            and torch.backends.mkldnn.is_available()
+            and not (torch.is_grad_enabled() and (x.requires_grad or self.weight.requires_grad))
+        ):
+            return torch.mkldnn_convolution(
+                x, self.weight, self.bias, self.padding, self.stride, self.dilation, self.groups
+            )
+        return super().forward(x)
+
+
 def _conv(c_in: int, c_out: int, k: int, norm: str, *, stride: int = 1) -> list[nn.Module]:
     """Conv (padding 1: same size at stride 1, halved at stride 2), GroupNorm?, ReLU."""
-    layers: list[nn.Module] = [nn.Conv3d(c_in, c_out, k, stride=stride, padding=1)]
+    layers: list[nn.Module] = [Conv3d(c_in, c_out, k, stride=stride, padding=1)]
     if norm == "group":
         layers.append(nn.GroupNorm(_groups(c_out), c_out))
     layers.append(nn.ReLU())
@@ -289,10 +313,10 @@ class Bridge(nn.Module):
         c, ct = config.channels[-1], config.token_channels
         self.g = config.grid_size // 2 ** len(config.channels)
         self.ct = ct
-        self.reduce = nn.Conv3d(c, ct, 1)
+        self.reduce = Conv3d(c, ct, 1)
         self.to_token = nn.Linear(ct * self.g**3, config.embed_dim)
         self.from_token = nn.Linear(config.embed_dim, ct * self.g**3)
-        self.expand = nn.Conv3d(ct, c, 1)
+        self.expand = Conv3d(ct, c, 1)
         nn.init.zeros_(self.expand.weight)
         nn.init.zeros_(self.expand.bias)
 

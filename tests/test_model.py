@@ -416,3 +416,12 @@ def test_tiny_model_learns_boxes() -> None:
         optimizer.step()
     after = eval_loss()
     assert after < 0.6 * before, (before, after)
+
+
+def test_single_frame_convolution_fast_path_matches_the_reference() -> None:
+    conv = model_module.Conv3d(3, 5, 3, stride=2, padding=1)
+    x = torch.randn(1, 3, 10, 10, 10)
+    reference = torch.nn.functional.conv3d(x, conv.weight, conv.bias, stride=2, padding=1)
+    with torch.no_grad():
+        torch.testing.assert_close(conv(x), reference, atol=1e-5, rtol=1e-5)
+    assert conv(x).requires_grad  # with gradients the ordinary path runs
