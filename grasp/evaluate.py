@@ -36,8 +36,8 @@ truth) and ``grasps.png`` (the planned grasp on the prediction and the re-grasp 
 Cost (see :data:`PRESETS`): with trained models the grasping and the F-score meshes take about
 equal shares. The default run evaluates 10 sequences per condition and split and grasps every
 single-object one with the planner's 24 principal-axis candidates (about 7.5 minutes on two
-cores with the shipped U-Net models); ``--quick`` is a one-minute smoke test; ``--full`` uses 50 sequences per cell and the
-planner's 64 candidates. Stage timings are printed at the end: each stage's seconds summed over
+cores with the shipped U-Net models); ``--quick`` is a one-minute smoke test; ``--full`` uses
+50 sequences per cell and the planner's 64 candidates. Stage timings are printed at the end: each stage's seconds summed over
 sequences (so over all worker processes), and the wall time of the whole run.
 
 Determinism: scenes, surface samples and planner candidates are seeded from ``--seed`` and the
