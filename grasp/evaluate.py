@@ -37,8 +37,9 @@ Cost (see :data:`PRESETS`): with trained models the grasping and the F-score mes
 equal shares. The default run evaluates 10 sequences per condition and split and grasps every
 single-object one with the planner's 24 principal-axis candidates (about 7.5 minutes on two
 cores with the shipped U-Net models); ``--quick`` is a one-minute smoke test; ``--full`` uses
-50 sequences per cell and the planner's 64 candidates. Stage timings are printed at the end: each stage's seconds summed over
-sequences (so over all worker processes), and the wall time of the whole run.
+50 sequences per cell and the planner's 64 candidates. Stage timings are printed at the end:
+each stage's seconds summed over sequences (so over all worker processes), and the wall time of
+the whole run.
 
 Determinism: scenes, surface samples and planner candidates are seeded from ``--seed`` and the
 sequence's identity, and every worker runs torch on one thread, so the numbers do not depend on
