@@ -1245,8 +1245,15 @@ def evaluate(settings: Settings, *, out: Path | None = None, progress: bool = Tr
 
 
 def _list_arg(choices: tuple[str, ...], what: str):
+    """Comma list of names, in any case and with the tables' spelling too ("MVP", "Single-View",
+    "Camera Pan" mean mvp, single_view, camera_pan)."""
+
     def parse(text: str) -> tuple[str, ...]:
-        items = tuple(x.strip() for x in text.split(",") if x.strip())
+        items = tuple(
+            "_".join(x.strip().lower().replace("-", " ").split())
+            for x in text.split(",")
+            if x.strip()
+        )
         if text.strip() == "all":
             return choices
         bad = [x for x in items if x not in choices]

@@ -83,6 +83,13 @@ def test_bad_command_line_input_says_what_was_expected(capsys):
         assert expected in capsys.readouterr().err
 
 
+def test_names_are_accepted_as_the_tables_print_them():
+    models = ev._list_arg(ev.ROWS, "rows")
+    assert models("MVP,Single-View, registered fusion") == ("mvp", "single_view",
+                                                            "registered_fusion")
+    assert ev._list_arg(ev.CONDITIONS, "conditions")("Camera Pan") == ("camera_pan",)
+
+
 def test_physics_count_comes_from_the_preset_or_the_command_line():
     parser = ev.build_parser()
     models = ["--models", ev.FUSION]
