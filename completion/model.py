@@ -575,11 +575,11 @@ class CompletionModel(nn.Module):
         frames = seq.flatten(0, 1)  # (N, G, G, G)
         skips = self.encoder(frames)  # local tower: this frame alone
         bottom = skips[-1]
-        if self.tower is not None:
+        if self.tower is not None and self.bridge is not None:
             tokens = self._tokens(frames).view(b, n, -1)  # (B, L, D)
             with _full_precision(tokens):
                 context = self.tower(tokens.float())  # (B, L, D)
-            bottom = bottom + self._volume(context.flatten(0, 1), bottom)
+            bottom = bottom + self.bridge.volume(context.flatten(0, 1)).to(bottom.dtype)
         logits = self.decoder(bottom, skips, frames)  # (N, G, G, G)
         return logits.view(seq.shape)
 
@@ -588,10 +588,12 @@ class CompletionModel(nn.Module):
         assert self.context_encoder is not None and self.bridge is not None
         return self.bridge.token(self.context_encoder(frames)[-1])
 
-    def _volume(self, context: Tensor, bottom: Tensor) -> Tensor:
-        """Context tower output (N, D) -> a bottleneck volume to add to the local one."""
-        assert self.bridge is not None
-        return self.bridge.volume(context.to(bottom.dtype)).to(bottom.dtype)
+    def _context_step(self, frame: Tensor, state: State) -> tuple[Tensor, State]:
+        """One view through the context tower: (B, D) output and the tower's new state."""
+        assert self.tower is not None
+        tokens = self._tokens(frame)
+        with _full_precision(tokens):
+            return self.tower.step(tokens.float(), state["t"], state)
 
     # ---- streaming -----------------------------------------------------------------------
 
@@ -612,16 +614,13 @@ class CompletionModel(nn.Module):
         """
         frame = self._check_grids(frame, ndim=4, what="frame")
         self._check_state(state, batch=frame.shape[0])
-        t = state["t"]
         skips = self.encoder(frame)
         bottom = skips[-1]
         new: State = {}
-        if self.tower is not None:
-            tokens = self._tokens(frame)
-            with _full_precision(tokens):
-                context, new = self.tower.step(tokens.float(), t, state)
-            bottom = bottom + self._volume(context, bottom)
-        new["t"] = t + 1
+        if self.tower is not None and self.bridge is not None:
+            context, new = self._context_step(frame, state)
+            bottom = bottom + self.bridge.volume(context).to(bottom.dtype)
+        new["t"] = state["t"] + 1
         return self.decoder(bottom, skips, frame), new
 
     def advance(self, state: State, frame: Tensor) -> State:
@@ -633,9 +632,7 @@ class CompletionModel(nn.Module):
         self._check_state(state, batch=frame.shape[0])
         new: State = {}
         if self.tower is not None:
-            tokens = self._tokens(frame)
-            with _full_precision(tokens):
-                new = self.tower.step(tokens.float(), state["t"], state)[1]
+            new = self._context_step(frame, state)[1]
         new["t"] = state["t"] + 1
         return new
 

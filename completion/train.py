@@ -4,7 +4,7 @@ Example (see completion/weights/README.md for the exact runs behind the shipped 
 
     python -m completion.train --model single_view --steps 1500 \\
         --out completion/weights/single_view.pt
-    python -m completion.train --model mvp --steps 1000 \
+    python -m completion.train --model mvp --steps 1000 \\
         --init-from completion/weights/single_view.pt --out completion/weights/mvp.pt
 
 Shards are read from ``--train-dir`` / ``--val-dir``; sequences that are missing are generated
