@@ -29,6 +29,7 @@ from typing import Any, Literal
 
 import torch
 
+from completion.cli import name_list
 from completion.model import (
     DEFAULT_CONFIGS,
     WEIGHTS_DIR,
@@ -148,10 +149,6 @@ def _int_list(text: str) -> list[int]:
         ) from error
 
 
-def _name_list(text: str) -> list[str]:
-    return [part.strip() for part in text.split(",") if part.strip()]
-
-
 def main(argv: Sequence[str] | None = None) -> None:
     parser = argparse.ArgumentParser(
         prog="python -m completion.bench",
@@ -159,7 +156,7 @@ def main(argv: Sequence[str] | None = None) -> None:
     )
     parser.add_argument(
         "--models",
-        type=_name_list,
+        type=name_list(tuple(sorted(DEFAULT_CONFIGS)), "models"),
         default=list(DEFAULT_MODELS),
         help=f"comma-separated names from {sorted(DEFAULT_CONFIGS)} (default: %(default)s)",
     )

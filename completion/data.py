@@ -28,6 +28,7 @@ from pathlib import Path
 
 import numpy as np
 
+from completion.cli import integer_at_least, name_list
 from completion.scenes import CONDITIONS, VIEWS, Sequence, make_sequence
 
 SHARD_KEYS = ("inputs", "targets", "grid_to_camera", "camera_to_world")
@@ -178,21 +179,11 @@ def show(path: str | Path, out: str | Path) -> Path:
 
 
 def parse_conditions(text: str) -> list[str]:
-    """CLI type: 'all' or a comma list of conditions (argparse error text otherwise)."""
-    names = list(CONDITIONS) if text == "all" else [c.strip() for c in text.split(",") if c.strip()]
-    bad = [c for c in names if c not in CONDITIONS]
-    if bad or not names:
-        raise argparse.ArgumentTypeError(
-            f"unknown condition(s) {bad}; expected 'all' or a comma list of {', '.join(CONDITIONS)}"
-        )
-    return names
+    """CLI type: 'all' or a comma list of conditions, in any case (argparse error otherwise)."""
+    return list(name_list(CONDITIONS, "conditions")(text))
 
 
-def _positive(text: str) -> int:
-    value = int(text)
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text}")
-    return value
+_positive = integer_at_least(1)
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -175,7 +175,7 @@ def voxelize_mesh(
     if f.min() < 0 or f.max() >= len(v):
         raise ValueError("faces index vertices that do not exist")
     t = _check_transform(grid_to_camera)
-    pitch = float(np.cbrt(abs(np.linalg.det(t[:3, :3]))))
+    pitch = pitch_of(t)
     # Voxels the surface passes through: the winding number is evaluated at each of their centres.
     shell = voxelize_points(sample_surface(v, f, spacing=pitch / 3.0), t)
     # Every other voxel lies in a 6-connected region that no surface crosses, so inside/outside is
@@ -252,6 +252,21 @@ def depth_to_points(
     return np.stack([x, y, z], axis=1)
 
 
+def jaccard(prediction: np.ndarray, target: np.ndarray) -> np.ndarray:
+    """|A ∩ B| / |A ∪ B| of bool grids over their last three axes (leading axes broadcast);
+    1 where both are empty (they agree), 0 where exactly one is."""
+    a, b = np.asarray(prediction, dtype=bool), np.asarray(target, dtype=bool)
+    inter = np.count_nonzero(a & b, axis=(-3, -2, -1))
+    union = np.count_nonzero(a | b, axis=(-3, -2, -1))
+    return np.where(union > 0, inter / np.maximum(union, 1), 1.0)
+
+
+def pitch_of(grid_to_camera: np.ndarray) -> float:
+    """Voxel edge length in metres of a grid transform (cube root of its scale's determinant)."""
+    t = np.asarray(grid_to_camera, dtype=np.float64)
+    return float(np.cbrt(abs(np.linalg.det(t[:3, :3]))))
+
+
 def transform_points(points: np.ndarray, transform: np.ndarray) -> np.ndarray:
     """Apply a 4×4 rigid or affine transform to (n, 3) points."""
     t = np.asarray(transform, dtype=np.float64)
@@ -275,7 +290,7 @@ class VoxelGrid:
     @property
     def pitch(self) -> float:
         """Voxel edge length in metres."""
-        return float(np.cbrt(abs(np.linalg.det(self.grid_to_camera[:3, :3]))))
+        return pitch_of(self.grid_to_camera)
 
     @classmethod
     def from_points(cls, points: np.ndarray, grid_to_camera: np.ndarray | None = None) -> VoxelGrid:

@@ -126,7 +126,7 @@ def load_object(object_id: str) -> trimesh.Trimesh:
 def _load_cached(object_id: str) -> trimesh.Trimesh:
     rng = _rng_for(object_id)
     if object_id.startswith("file:"):
-        mesh = _read_mesh(Path(object_id[5:]))
+        mesh = read_mesh(Path(object_id[5:]))
         size = float(mesh.extents.max())
         target = size if 0.02 <= size <= 0.5 else 0.15
     else:
@@ -138,14 +138,14 @@ def _load_cached(object_id: str) -> trimesh.Trimesh:
             mesh = _PROCEDURAL[family](rng)
             target = rng.uniform(*SIZE_RANGE_M)
         elif kind == "urdf":
-            mesh = _read_mesh(_pybullet_data() / "random_urdfs" / rest / f"{rest}.obj")
+            mesh = read_mesh(_pybullet_data() / "random_urdfs" / rest / f"{rest}.obj")
             target = rng.uniform(*SIZE_RANGE_M)
         elif kind == "named":
             if rest not in NAMED_OBJECTS:
                 raise ValueError(
                     f"unknown named object {rest!r}; expected one of {list(NAMED_OBJECTS)}"
                 )
-            mesh = _read_mesh(_pybullet_data() / NAMED_OBJECTS[rest])
+            mesh = read_mesh(_pybullet_data() / NAMED_OBJECTS[rest])
             target = rng.uniform(0.08, 0.20)
         else:
             split_of(object_id)  # raises the explanatory error
@@ -155,7 +155,21 @@ def _load_cached(object_id: str) -> trimesh.Trimesh:
     return mesh
 
 
-def _read_mesh(path: Path) -> trimesh.Trimesh:
+def mesh_from_spec(spec: str) -> trimesh.Trimesh:
+    """What a command line's MESH argument names: a mesh file (any format trimesh reads, metres,
+    as is) or an object id of the library (``named/mug``, ``proc/box/3``, ``urdf/012``)."""
+    path = Path(spec)
+    if path.is_file():
+        return read_mesh(path)
+    if spec.startswith(("proc/", "urdf/", "named/", "file:")):
+        return load_object(spec)
+    raise ValueError(
+        f"MESH must be a mesh file or an object id (named/mug, proc/box/3, urdf/012); got {spec!r}"
+    )
+
+
+def read_mesh(path: Path) -> trimesh.Trimesh:
+    """The triangles of a mesh file; ValueError naming the file when it holds none."""
     if not path.is_file():
         raise ValueError(f"mesh file not found: {path}")
     try:

@@ -79,11 +79,10 @@ class Renderer:
     """Owns a pybullet DIRECT client with mesh bodies; renders depth and segmentation."""
 
     def __init__(self, intrinsics: Intrinsics = DEFAULT_INTRINSICS) -> None:
-        import pybullet
-        from pybullet_utils.bullet_client import BulletClient
+        from completion.bullet import direct_client, pybullet
 
         self._pb = pybullet
-        self.client = BulletClient(connection_mode=pybullet.DIRECT)
+        self.client = direct_client()
         self.intrinsics = intrinsics
         self._projection = projection_matrix(intrinsics).T.reshape(-1).tolist()
         self._bodies: list[int] = []

@@ -41,7 +41,9 @@ import numpy as np
 import torch
 from torch.nn import functional as F
 
+from completion.cli import one_name
 from completion.data import generate, load_sequence, parse_conditions
+from completion.grid import jaccard
 from completion.model import (
     DEFAULT_CONFIGS,
     CompletionModel,
@@ -121,7 +123,7 @@ def validate(
         probs = torch.sigmoid(model(x))
         y = y.bool()
         for t in thresholds:
-            jac = jaccard(probs >= t, y).mean(1)  # (B,) mean over views
+            jac = jaccard((probs >= t).numpy(), y.numpy()).mean(1)  # (B,) mean over views
             for k, cond in enumerate(val["condition"][start : start + batch]):
                 per_seq[t].setdefault(cond, []).append(float(jac[k]))
     out = {}
@@ -132,22 +134,20 @@ def validate(
     return out
 
 
-def jaccard(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
-    """Jaccard of bool grids over the last three axes; 1 where both are empty."""
-    i = (pred & target).flatten(-3).sum(-1).float()
-    u = (pred | target).flatten(-3).sum(-1).float()
-    return torch.where(u > 0, i / u.clamp(min=1), torch.ones_like(u))
-
-
 def warm_start(model: CompletionModel, path: Path) -> None:
-    """Start a multi-view model from a trained Single-View U-Net: its encoder initialises both
-    towers' encoders, its decoder the decoder. The context path's output layer starts at zero,
-    so the model begins exactly as the Single-View model and learns what the memory adds."""
+    """Start from trained weights: a checkpoint of the same kind and shape loads whole (a new
+    run that fine-tunes it, with its own schedule); a Single-View U-Net initialises both towers'
+    encoders and the decoder of a multi-view model. The context path's output layer then starts
+    at zero, so the model begins exactly as the Single-View model and learns what the memory
+    adds."""
     payload = read_checkpoint(path)
-    if payload["config"]["kind"] != "single_view":
-        raise ValueError(f"--init-from needs a single_view checkpoint, {path} is "
-                         f"{payload['config']['kind']}")
     weights = {k: v.float() for k, v in payload["state_dict"].items()}
+    if payload["config"] == model.config.replace(seed=payload["config"]["seed"]).to_dict():
+        model.load_state_dict(weights)
+        return
+    if payload["config"]["kind"] != "single_view":
+        raise ValueError(f"--init-from needs a single_view checkpoint or one of this model's "
+                         f"config, {path} is {payload['config']['kind']}")
     for name in ("encoder", "decoder", "context_encoder"):
         part = getattr(model, name)
         if part is None:
@@ -245,11 +245,15 @@ def train(args: argparse.Namespace) -> dict:
         x, y = unpack(train_set["packed"][idx, :, first : first + args.views])
         if args.augment:
             x, y = augment(x, y, gen)
+        local = None
+        if args.blank_local:  # hide views from the local tower: the context must carry them
+            keep = torch.rand(x.shape[:2], generator=gen) >= args.blank_local
+            local = (x * keep[..., None, None, None]).to(device)
         x, y = x.to(device), y.to(device)
         for group in opt.param_groups:  # cosine decay to a tenth over the step budget
             group["lr"] = args.lr * (0.1 + 0.45 * (1 + math.cos(math.pi * step / args.steps)))
         with autocast:
-            logits = model(x)
+            logits = model(x, local=local)
         loss = F.binary_cross_entropy_with_logits(logits.float(), y, pos_weight=pos_weight)
         opt.zero_grad(set_to_none=True)
         step += 1
@@ -363,7 +367,8 @@ def main(argv: list[str] | None = None) -> int:
         description=__doc__,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    p.add_argument("--model", choices=sorted(DEFAULT_CONFIGS), required=True)
+    p.add_argument("--model", type=one_name(tuple(sorted(DEFAULT_CONFIGS)), "models"),
+                   required=True, help=f"one of {', '.join(sorted(DEFAULT_CONFIGS))}")
     p.add_argument("--conditions", type=parse_conditions, default=list(CONDITIONS))
     p.add_argument("--views", type=int, default=12, help="views per training window (3, 6, 12)")
     p.add_argument("--train-dir", type=Path, default=Path("data/train"))
@@ -406,11 +411,19 @@ def main(argv: list[str] | None = None) -> int:
                    help="bf16 autocast for the convolutions (fp32 master weights)")
     p.add_argument("--no-augment", dest="augment", action="store_false",
                    help="no random x/y mirroring of training sequences")
+    p.add_argument("--blank-local", type=float, default=0.0, metavar="P",
+                   help="multi-view models: hide each training view from the local tower with "
+                   "probability P (the context tower still sees it), so that the memory path "
+                   "learns to carry the shape; 0 = off")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     args = p.parse_args(argv)
     for name in ("views", "steps", "val_every", "batch_size", "threads"):
         if getattr(args, name) < 1:
             p.error(f"--{name.replace('_', '-')} must be ≥ 1, got {getattr(args, name)}")
+    if not 0.0 <= args.blank_local < 1.0:
+        p.error(f"--blank-local must be in [0, 1), got {args.blank_local}")
+    if args.blank_local and args.model == "single_view":
+        p.error("--blank-local needs a multi-view model (single_view has no context tower)")
     if args.init_from and not args.init_from.is_file():
         p.error(f"--init-from: no such checkpoint {args.init_from}")
     args.command = "python -m completion.train " + shlex.join(argv)

@@ -1,6 +1,6 @@
 """GraspIt!-style autograsp of the BarrettHand on a triangle mesh (kinematic, deterministic).
 
-Semantics (BARRETT.md, DESIGN.md §7):
+Semantics (hands/barrett/README.md, DESIGN.md §7):
 
 1. The spread is set first and never moved.
 2. Approach (optional): while the open hand overlaps the object, back off along the palm's −z in

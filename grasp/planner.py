@@ -209,13 +209,14 @@ def rank(
 
 
 def read_mesh_argument(parser, path, *, scale: float = 1.0) -> trimesh.Trimesh:
-    """A command-line mesh file (``pathlib.Path``), scaled; an ``argparse`` parser error when it
-    is missing or holds no triangles."""
-    if not path.is_file():
-        parser.error(f"no such mesh file: {path}")
-    mesh = trimesh.load(path, force="mesh")
-    if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
-        parser.error(f"{path} holds no triangles")
+    """A command-line MESH (a mesh file or an object id, :func:`completion.objects.mesh_from_spec`),
+    scaled; an ``argparse`` parser error when it is missing or holds no triangles."""
+    from completion.objects import mesh_from_spec
+
+    try:
+        mesh = mesh_from_spec(str(path))
+    except ValueError as exc:
+        parser.error(f"no such mesh file or object: {exc}")
     if scale != 1.0:
         mesh.apply_scale(scale)
     return mesh
@@ -230,7 +231,9 @@ def main(argv: Sequence[str] | None = None) -> None:
     parser = argparse.ArgumentParser(
         prog="python -m grasp.planner", description="Plan BarrettHand grasps on a mesh file."
     )
-    parser.add_argument("mesh", type=Path, help="mesh file (OBJ, STL, PLY, ...), metres")
+    parser.add_argument(
+        "mesh", type=Path, help="mesh file (OBJ, STL, PLY, ...; metres) or an object id (named/mug)"
+    )
     parser.add_argument("--candidates", type=int, default=64, help="candidate grasps to try")
     parser.add_argument("--seed", type=int, default=0, help="seed of the candidates")
     parser.add_argument("--top-k", type=int, default=5, help="grasps to print")

@@ -14,8 +14,8 @@ all contacts' edge wrenches (GraspIt!'s "L1 norm" GWS; Ferrari & Canny 1992).
 - ``volume``: the hull's volume (0 when the hull is degenerate).
 
 Friction: μ = ``MU_RUBBER`` = 1.0. The BH8-280 model in GraspIt! has rubber-coated links and
-BARRETT.md quotes μ = 1.0 for rubber on most materials; the objects here carry no material, so
-the rubber value is the one that describes the hand. Pass ``mu`` to use another.
+hands/barrett/README.md quotes μ = 1.0 for rubber on most materials; the objects here carry no
+material, so the rubber value is the one that describes the hand. Pass ``mu`` to use another.
 """
 
 from __future__ import annotations
@@ -27,7 +27,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import ConvexHull, QhullError
 
-#: Coulomb friction of the hand's rubber-coated links on most materials (BARRETT.md).
+#: Coulomb friction of the hand's rubber-coated links on most materials (hands/barrett/README).
 MU_RUBBER = 1.0
 #: Edges of the linearised friction cone of one point contact.
 FRICTION_EDGES = 8

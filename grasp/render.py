@@ -15,9 +15,9 @@ from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
-import pybullet
 import trimesh
 
+from completion.bullet import pybullet
 from grasp.autograsp import GraspResult
 from grasp.sim import GraspWorld, check_mesh
 
@@ -127,7 +127,9 @@ def main(argv: Sequence[str] | None = None) -> None:
         prog="python -m grasp.render",
         description="Plan a BarrettHand grasp on a mesh file and save a picture of it.",
     )
-    parser.add_argument("mesh", type=Path, help="mesh file (OBJ, STL, PLY, ...), metres")
+    parser.add_argument(
+        "mesh", type=Path, help="mesh file (OBJ, STL, PLY, ...; metres) or an object id (named/mug)"
+    )
     parser.add_argument("--out", type=Path, default=Path("grasp.png"), help="output PNG")
     parser.add_argument("--candidates", type=int, default=64, help="candidate grasps to try")
     parser.add_argument("--seed", type=int, default=0, help="seed of the candidates")

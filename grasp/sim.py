@@ -33,12 +33,10 @@ from typing import NamedTuple
 
 import fcl
 import numpy as np
-import pybullet
 import trimesh
-from pybullet_utils import bullet_client
 from scipy.spatial import ConvexHull, HalfspaceIntersection, QhullError
-from scipy.spatial.transform import Rotation
 
+from completion.bullet import direct_client, pose_to_pybullet, pybullet, pybullet_to_pose
 from hands.barrett import BH8_282, JOINT_NAMES, LINK_NAMES, BarrettParams, HandKinematics
 from hands.barrett.kinematics import Primitive
 
@@ -119,7 +117,7 @@ def object_frame(mesh: trimesh.Trimesh) -> tuple[np.ndarray, float]:
     """Reference point and size for wrench torques: (centre (3,), max radius).
 
     The centre is the centre of mass for a watertight mesh, the surface centroid otherwise; the
-    radius is the largest centre-to-vertex distance (BARRETT.md, quality measures).
+    radius is the largest centre-to-vertex distance (hands/barrett/README.md, quality measures).
     """
     center = mesh.center_mass if mesh.is_volume else mesh.centroid
     center = np.asarray(center, dtype=np.float64)
@@ -342,17 +340,6 @@ def _outline(points: np.ndarray, k: int) -> list[np.ndarray]:
 
 
 # -- pybullet world ----------------------------------------------------------------------------
-def _pose_to_pybullet(pose: np.ndarray) -> tuple[list[float], list[float]]:
-    return pose[:3, 3].tolist(), Rotation.from_matrix(pose[:3, :3]).as_quat().tolist()
-
-
-def _pybullet_to_pose(position, quaternion) -> np.ndarray:
-    pose = np.eye(4)
-    pose[:3, :3] = Rotation.from_quat(quaternion).as_matrix()
-    pose[:3, 3] = position
-    return pose
-
-
 class GraspWorld:
     """A pybullet world (its own DIRECT client) with one static object and one BarrettHand.
 
@@ -380,7 +367,7 @@ class GraspWorld:
 
         self.mesh = check_mesh(mesh)
         self.params = params
-        self.client = bullet_client.BulletClient(connection_mode=pybullet.DIRECT)
+        self.client = direct_client()
         self._scene: CollisionScene | None = None
         try:
             vertices = np.asarray(mesh.vertices, dtype=np.float64).tolist()
@@ -428,7 +415,7 @@ class GraspWorld:
             self.client.changeDynamics(self.hand_id, index, collisionMargin=0.0)
         # the base of a pybullet body is its inertial frame, not the URDF link frame
         local = self.client.getDynamicsInfo(self.hand_id, -1)
-        self._palm_to_base = _pybullet_to_pose(local[3], local[4])
+        self._palm_to_base = pybullet_to_pose(local[3], local[4])
         self.set_hand(np.eye(4), np.zeros(8))
 
     # -- lifetime --------------------------------------------------------------------------------
@@ -459,7 +446,7 @@ class GraspWorld:
         q = np.asarray(joints_deg, dtype=np.float64)
         if q.shape != (8,):
             raise ValueError(f"joints_deg must have shape (8,), got {q.shape}")
-        position, orientation = _pose_to_pybullet(palm_pose @ self._palm_to_base)
+        position, orientation = pose_to_pybullet(palm_pose @ self._palm_to_base)
         self.client.resetBasePositionAndOrientation(self.hand_id, position, orientation)
         for name, value in zip(JOINT_NAMES, np.radians(q), strict=True):
             self.client.resetJointState(self.hand_id, self.joints[name].index, float(value))
@@ -474,13 +461,13 @@ class GraspWorld:
     def link_poses(self) -> dict[str, np.ndarray]:
         """Every hand link's URDF frame as link→world (4, 4)."""
         position, orientation = self.client.getBasePositionAndOrientation(self.hand_id)
-        base = _pybullet_to_pose(position, orientation)
+        base = pybullet_to_pose(position, orientation)
         poses = {"palm": base @ np.linalg.inv(self._palm_to_base)}
         for name, index in self.link_index.items():
             if index < 0:
                 continue
             state = self.client.getLinkState(self.hand_id, index, computeForwardKinematics=True)
-            poses[name] = _pybullet_to_pose(state[4], state[5])
+            poses[name] = pybullet_to_pose(state[4], state[5])
         return poses
 
     def closest_points(self, max_distance: float = CONTACT_DISTANCE_M) -> list[ClosestPoint]:

@@ -25,7 +25,7 @@ def test_params_are_frozen_and_follow_barrett_md_first_column():
     with pytest.raises(dataclasses.FrozenInstanceError):
         BH8_282.palm_radius = 0.05  # type: ignore[misc]
     p = BH8_282
-    # BARRETT.md, first column (mm and degrees)
+    # hands/barrett/README.md, first column (mm and degrees)
     assert p.palm_radius == pytest.approx(0.0445)
     assert p.spread_axis_x == pytest.approx(0.025)
     assert p.base_to_proximal == pytest.approx(0.050)

@@ -85,4 +85,4 @@ def test_cli_generate_and_show(tmp_path):
         capture_output=True,
         text=True,
     )
-    assert bad.returncode == 2 and "expected 'all' or a comma list" in bad.stderr
+    assert bad.returncode == 2 and "comma-separated list of conditions" in bad.stderr

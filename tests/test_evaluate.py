@@ -1,17 +1,27 @@
 """grasp.evaluate: the fusion reference, the command line, and a tiny end-to-end run."""
 
 import json
+import shutil
+import subprocess
+import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
 import trimesh
 
+from completion.cli import name_list
 from completion.grid import GRID_SHAPE
-from completion.model import ModelConfig, build_model, save_checkpoint
+from completion.model import WEIGHTS_DIR, ModelConfig, build_model, save_checkpoint
 from completion.scenes import CONDITIONS, SINGLE_OBJECT_CONDITIONS
 from grasp import evaluate as ev
+from grasp.evaluate.aggregate import aggregate
+from grasp.evaluate.runner import Evaluator, SequenceResult
 from hands.barrett import JOINT_NAMES
+
+ROOT = Path(__file__).resolve().parents[1]
+PRIOR_PATH = str(WEIGHTS_DIR / "prior.npz")
 
 TINY = {"channels": (2, 2, 2), "conv_kernel": 3, "embed_dim": 8, "n_heads": 2, "n_features": 8}
 KINDS = {
@@ -42,6 +52,7 @@ def _tiny_weights(folder, *, logit: float | None = 2.0) -> dict[str, str]:
         path = folder / f"{name}.pt"
         save_checkpoint(model, path, threshold=0.5)
         paths[name] = str(path)
+    shutil.copy(PRIOR_PATH, folder / "prior.npz")  # the prior row's shipped file
     return paths
 
 
@@ -84,17 +95,17 @@ def test_bad_command_line_input_says_what_was_expected(capsys):
 
 
 def test_names_are_accepted_as_the_tables_print_them():
-    models = ev._list_arg(ev.ROWS, "rows")
+    models = name_list(ev.ROWS, "rows")
     assert models("MVP,Single-View, registered fusion") == ("mvp", "single_view",
                                                             "registered_fusion")
-    assert ev._list_arg(ev.CONDITIONS, "conditions")("Camera Pan") == ("camera_pan",)
+    assert name_list(ev.CONDITIONS, "conditions")("Camera Pan") == ("camera_pan",)
 
 
 def test_physics_count_comes_from_the_preset_or_the_command_line():
     parser = ev.build_parser()
     models = ["--models", ev.FUSION]
     for argv, expected in (
-        ([], 2),
+        ([], 5),
         (["--quick"], 1),
         (["--full"], 10),
         (["--physics-count", "0"], 0),
@@ -229,6 +240,13 @@ def test_tiny_run_writes_its_reports(tiny_run):
     assert "Table I: Jaccard" in report and "Registered fusion" in report
     assert "Grasp success" in report and "True mesh (upper bound)" in report
     assert results["config"]["views"] == 3 and results["config"]["seed"] == 3
+    assert "Prior, ignores the input" in report and "How to read this" in report
+    for condition in CONDITIONS:
+        ceiling = results["fscore_ceiling"][condition]
+        assert 0.5 < ceiling["fscore_1"] <= ceiling["fscore_2"] <= 1.0, condition
+    moving = results["tables"]["joint_error_moving_deg"]["mvp"]["camera_pan"]["test"]
+    assert moving == pytest.approx(results["tables"]["joint_error_deg"]["mvp"]["camera_pan"]
+                                   ["test"] * 4 / 3, abs=1e-3)  # the spreads never differ
     per_view = results["per_view_jaccard"]["mvp"]["object_hiding"]["test"]
     assert len(per_view) == 3
     records = [r for r in results["per_object"] if r["table"] == "main"]
@@ -291,3 +309,141 @@ def test_numbers_do_not_depend_on_the_number_of_workers(tmp_path):
         runs.append(ev.evaluate(settings, progress=False))
     assert runs[0]["per_object"] == runs[1]["per_object"]
     assert runs[0]["tables"] == runs[1]["tables"]
+
+
+# ------------------------------------------------------------------------------ trust
+
+
+def _settings(paths: dict, **changes) -> ev.Settings:
+    base = dict(
+        rows=("mvp", ev.PRIOR, ev.FUSION),
+        model_paths=(("mvp", paths["mvp"]),),
+        prior_path=PRIOR_PATH,
+        conditions=("camera_pan",),
+        count=1,
+        grasp_count=0,
+        named=0,
+        views=3,
+        seed=7,
+        candidates=2,
+        examples=False,
+    )
+    return ev.Settings(**(base | changes))
+
+
+class _GroundTruthAsModel(Evaluator):
+    """The mvp row answers with the 40³ target itself: a perfect completion."""
+
+    def probabilities(self, seq):
+        out = super().probabilities(seq)
+        out["mvp"] = seq.targets.astype(np.float32)
+        return out
+
+
+def test_ground_truth_scores_jaccard_one_and_the_fscore_ceiling(tmp_path):
+    paths = _tiny_weights(tmp_path)
+    evaluator = _GroundTruthAsModel(_settings(paths))
+    try:
+        for condition in ("camera_pan", "object_hiding", "two_object_pan"):
+            result = evaluator.evaluate(ev.Job(ev.MAIN_TABLE, condition, "test", 0))
+            assert result.per_view["mvp"]["jaccard"] == [1.0, 1.0, 1.0]
+            for m in ("fscore_1", "fscore_2"):
+                assert result.per_view["mvp"][m] == result.ceiling[m], (condition, m)
+                assert all(0.5 < f <= 1.0 for f in result.ceiling[m])
+    finally:
+        evaluator.close()
+
+
+def test_prior_row_does_not_change_when_every_input_is_zeroed(tmp_path, monkeypatch):
+    import completion.scenes
+
+    paths = _tiny_weights(tmp_path, logit=None)
+    settings = _settings(paths, conditions=("object_hiding", "slide_behind"))
+    first = ev.evaluate(settings, progress=False)
+    make_sequence = completion.scenes.make_sequence
+
+    def blind(*args, **kwargs):
+        seq = make_sequence(*args, **kwargs)
+        seq.inputs[:] = False
+        return seq
+
+    monkeypatch.setattr(completion.scenes, "make_sequence", blind)
+    second = ev.evaluate(settings, progress=False)
+    for metric in ("jaccard", "fscore_1", "fscore_2"):
+        assert second["tables"][metric][ev.PRIOR] == first["tables"][metric][ev.PRIOR]
+    # the fusion row does look at the input: zeroed, it has nothing left
+    assert second["tables"]["jaccard"][ev.FUSION] != first["tables"]["jaccard"][ev.FUSION]
+
+
+def _record(condition, split, index, jaccard, *, grasp=None, lift=None, ceiling=0.9):
+    """A hand-made SequenceResult of one row ("mvp") with 2 views."""
+    job = ev.Job(ev.MAIN_TABLE, condition, split, index, grasp=grasp is not None)
+    per_view = {"mvp": {"jaccard": jaccard, "fscore_1": [0.5, 0.7], "fscore_2": [0.6, 0.8]}}
+    grasps = {} if grasp is None else {"mvp": grasp}
+    physics = {} if lift is None else {"mvp": {"success": lift}, ev.TRUE_MESH: {"success": True}}
+    result = SequenceResult(job, ["proc/box/1"], per_view, grasps, physics=physics)
+    result.ceiling = {"fscore_1": [ceiling, ceiling], "fscore_2": [1.0, 1.0]}
+    return result
+
+
+def _grasp(per_joint):
+    if per_joint is None:
+        return {"error_deg": None, "error_moving_deg": None, "per_joint_deg": None,
+                "reason": "empty completion: no surface to plan on"}
+    moving = [v for v, name in zip(per_joint, JOINT_NAMES, strict=True) if "spread" not in name]
+    return {"error_deg": float(np.mean(per_joint)), "error_moving_deg": float(np.mean(moving)),
+            "per_joint_deg": per_joint, "reason": ""}
+
+
+def test_aggregation_of_hand_made_records_gives_hand_computed_cells():
+    joints_a = [0, 2, 4, 0, 6, 8, 10, 12]  # spreads first in each finger: 8-mean 5.25, 6-mean 7
+    joints_b = [0, 1, 1, 0, 1, 1, 1, 1]  # 8-mean 0.75, 6-mean 1
+    results = [
+        _record("camera_pan", "test", 0, [1.0, 0.5], grasp=_grasp(joints_a), lift=True),
+        _record("camera_pan", "test", 1, [0.0, 0.5], grasp=_grasp(joints_b), lift=False),
+        _record("camera_pan", "test", 2, [0.2, 0.2], grasp=_grasp(None), lift=False,
+                ceiling=0.6),
+        _record("two_object_pan", "train", 0, [0.4, 0.6]),
+    ]
+    settings = ev.Settings(rows=("mvp",), model_paths=(("mvp", "unused.pt"),))
+    agg = aggregate(results, settings, ev.MAIN_TABLE)
+    t = agg["tables"]
+    assert t["jaccard"]["mvp"]["camera_pan"]["test"] == pytest.approx((0.75 + 0.25 + 0.2) / 3,
+                                                                      abs=1e-4)
+    assert t["jaccard"]["mvp"]["two_object_pan"]["train"] == 0.5
+    assert t["fscore_1"]["mvp"]["camera_pan"]["test"] == 0.6
+    # the failed grasp is counted in the cell, not averaged in
+    assert t["joint_error_deg"]["mvp"]["camera_pan"]["test"] == pytest.approx(3.0)
+    assert t["joint_error_moving_deg"]["mvp"]["camera_pan"]["test"] == pytest.approx(4.0)
+    assert agg["counts"]["mvp"]["camera_pan"]["test"] == {"sequences": 3, "grasped": 3,
+                                                          "grasp_ok": 2}
+    assert agg["grasp_failures"]["mvp"]["camera_pan"]["test"] == [
+        "empty completion: no surface to plan on"
+    ]
+    assert t["joint_error_deg"]["mvp"]["two_object_pan"]["train"] is None
+    assert t["grasp_success"]["mvp"]["camera_pan"]["test"] == pytest.approx(1 / 3, abs=1e-4)
+    assert agg["grasp_success_counts"]["mvp"]["camera_pan"]["test"] == {"tested": 3, "held": 1}
+    assert t["grasp_success"][ev.TRUE_MESH]["camera_pan"]["test"] == 1.0
+    assert agg["ceiling"]["camera_pan"]["test"]["fscore_1"] == pytest.approx(0.8)
+    assert agg["per_view_jaccard"]["mvp"]["camera_pan"]["test"] == pytest.approx([0.4, 0.4])
+    report = ev.markdown_report(ev.build_results(results, settings, {"sequences": 1.0}))
+    assert "3.00° (2/3)" in report and "4.00° (2/3)" in report  # cells say what they average
+    assert "Ceiling" in report and "How to read this" in report
+
+
+def test_nothing_prints_pybullet_noise(tmp_path):
+    """pybullet's "argv[0]=" and build banner never reach stdout (or stderr)."""
+    commands = [
+        [sys.executable, "-m", "completion.data", "generate", "--condition", "camera_pan",
+         "--split", "train", "--count", "1", "--views", "2", "--out", str(tmp_path / "data")],
+        [sys.executable, "-m", "grasp.evaluate", "--models", "prior,registered_fusion",
+         "--conditions", "camera_pan", "--count", "1", "--grasp-count", "1",
+         "--physics-count", "1", "--named", "0", "--views", "2", "--candidates", "2",
+         "--workers", "1", "--no-figures", "--quiet", "--out", str(tmp_path / "eval")],
+    ]
+    for command in commands:
+        run = subprocess.run(command, cwd=ROOT, capture_output=True, text=True, timeout=600)
+        assert run.returncode == 0, run.stderr
+        for stream in (run.stdout, run.stderr):
+            assert "argv[0]=" not in stream and "pybullet build time" not in stream, command
+    assert "and the figures" not in run.stdout  # --no-figures says so

@@ -88,10 +88,38 @@ def test_fscore_empty_cases_and_bad_thresholds():
 def test_fscore_of_a_mesh_with_itself_is_one():
     cube = _block((10, 10, 8), (30, 30, 28))
     t = _transform()
-    f1, f2 = fscore_grids(cube, cube, t, threshold=0.5, seed=3)
+    truth = grid_surface_sample(cube, t, threshold=0.5, seed=3)
+    f1, f2 = fscore_grids(cube, truth, t, threshold=0.5, seed=3)
     assert f1.fscore == 1.0 and f2.fscore == 1.0
     assert f1.d == pytest.approx(0.01 * 40 * PITCH)
     assert f2.d == pytest.approx(0.02 * 40 * PITCH)
+
+
+@pytest.mark.parametrize("shape", ["cube", "ball", "slab"])
+def test_independent_samples_of_one_surface_score_at_least_098(shape):
+    """The sampling is dense enough that F@1% measures the surfaces, not the sampling."""
+    idx = np.indices(GRID_SHAPE).transpose(1, 2, 3, 0)
+    grids = {
+        "cube": _block((4, 4, 4), (36, 36, 36)),  # the largest surface a fitted grid holds
+        "ball": np.linalg.norm(idx - 19.5, axis=-1) < 15,
+        "slab": _block((2, 15, 2), (38, 25, 38)),
+    }
+    t = _transform()
+    truth = grid_surface_sample(grids[shape], t, threshold=0.5, seed=1)
+    f1, f2 = fscore_grids(grids[shape], truth, t, threshold=0.5, seed=2)
+    assert f1.fscore >= 0.98 and f2.fscore >= 0.999
+
+
+def test_truth_sample_keeps_the_part_inside_the_grid():
+    t = _transform()  # grid from (-0.1, -0.1, 0.4) to (0.1, 0.1, 0.6), 5 mm voxels
+    inside = trimesh.creation.box((0.05, 0.05, 0.05))
+    inside.apply_translation([0.0, 0.0, 0.5])
+    half_out = trimesh.creation.box((0.1, 0.05, 0.05))
+    half_out.apply_translation([0.1, 0.0, 0.5])  # x from 0.05 to 0.15: half outside
+    sample = metrics.truth_surface_sample([inside, half_out], t, seed=0)
+    assert sample.points[:, 0].max() <= 0.1 + PITCH / 2
+    assert sample.points[:, 0].min() < -0.02  # the inside box is there
+    assert len(sample.points) >= metrics.FSCORE_SAMPLES // 2
 
 
 def test_fscore_of_a_shifted_mesh():
@@ -106,7 +134,7 @@ def test_fscore_of_a_shifted_mesh():
     assert side == pytest.approx(40 * PITCH)
     truth = grid_surface_sample(cube, t, threshold=0.5, seed=3)
     moved = _transform(shift_x=0.015 * side)
-    f1, f2 = fscore_grids(cube, cube, moved, threshold=0.5, seed=3, target_sample=truth)
+    f1, f2 = fscore_grids(cube, truth, moved, threshold=0.5, seed=4)
     assert f1.fscore < 0.8
     assert f2.fscore > 0.98
 
@@ -114,7 +142,8 @@ def test_fscore_of_a_shifted_mesh():
 def test_fscore_of_an_empty_prediction_is_zero():
     cube = _block((10, 10, 8), (30, 30, 28))
     empty = np.zeros(GRID_SHAPE, dtype=np.float32)
-    f1, f2 = fscore_grids(empty, cube, _transform(), threshold=0.5)
+    truth = grid_surface_sample(cube, _transform(), threshold=0.5, seed=3)
+    f1, f2 = fscore_grids(empty, truth, _transform(), threshold=0.5)
     assert f1.fscore == 0.0 and f2.fscore == 0.0
 
 
@@ -179,3 +208,13 @@ def test_joint_error_without_a_prediction_surface_is_a_value():
     result = metrics.grasp_joint_error(None, _object(), n_candidates=1)
     assert result.error_deg is None and "empty" in result.reason
     assert result.as_dict()["error_deg"] is None
+
+
+def test_joint_error_over_the_moving_joints_leaves_the_spreads_out():
+    per_joint = np.array([0.0, 2.0, 4.0, 0.0, 6.0, 8.0, 10.0, 12.0])  # spreads at 0 and 3
+    error = metrics.JointError(float(per_joint.mean()), per_joint)
+    assert metrics.MOVING_JOINTS == ("f1_prox", "f1_dist", "f2_prox", "f2_dist", "f3_prox",
+                                     "f3_dist")
+    assert error.error_moving_deg == pytest.approx(7.0)
+    assert error.as_dict()["error_moving_deg"] == pytest.approx(7.0)
+    assert metrics.JointError(None, reason="no grasp").error_moving_deg is None

@@ -21,11 +21,11 @@ from completion.model import (
     load_model,
     read_checkpoint,
     save_checkpoint,
-    sinusoidal_encoding,
     state_from_bytes,
     state_nbytes,
     state_to_bytes,
 )
+from completion.towers import sinusoidal_encoding
 
 torch.set_num_threads(1)
 
@@ -425,3 +425,36 @@ def test_single_frame_convolution_fast_path_matches_the_reference() -> None:
     with torch.no_grad():
         torch.testing.assert_close(conv(x), reference, atol=1e-5, rtol=1e-5)
     assert conv(x).requires_grad  # with gradients the ordinary path runs
+
+
+def test_local_input_replaces_what_the_local_tower_sees():
+    """``forward(seq, local=...)`` (training's --blank-local): the local tower and the raw-input
+    skip take ``local``, the context tower still takes ``seq``."""
+    torch.manual_seed(0)
+    seq = (torch.rand(1, 3, 40, 40, 40) > 0.9).float()
+    blank = torch.zeros_like(seq)
+    single = build_model(tiny_config("single_view")).eval()
+    mvp = build_model(default_config("mvp")).eval()  # tiny channels can leave no live path
+    with torch.no_grad():
+        torch.testing.assert_close(single(seq, local=seq), single(seq))
+        torch.testing.assert_close(single(seq, local=blank), single(blank))  # no context tower
+        for p in mvp.bridge.expand.parameters():
+            p.normal_()  # the context path starts at zero: open it
+        assert not torch.allclose(mvp(seq, local=blank), mvp(blank))  # the context saw seq
+    with pytest.raises(ValueError, match="local must have seq's shape"):
+        mvp(seq, local=blank[:, :2])
+
+
+def test_warm_start_from_the_same_model_loads_it_whole(tmp_path):
+    from completion.train import warm_start
+
+    source = build_model(tiny_config("mvp", seed=3))
+    save_checkpoint(source, tmp_path / "mvp.pt")
+    target = build_model(tiny_config("mvp", seed=4))
+    warm_start(target, tmp_path / "mvp.pt")
+    for (name, a), b in zip(source.state_dict().items(), target.state_dict().values(),
+                            strict=True):
+        torch.testing.assert_close(a.float(), b.float(), msg=name)
+    other = build_model(tiny_config("mvt"))
+    with pytest.raises(ValueError, match="single_view checkpoint or one of this model's"):
+        warm_start(other, tmp_path / "mvp.pt")

@@ -62,7 +62,13 @@ def test_select_threshold_writes_one_threshold_into_every_checkpoint(shards, tmp
 def test_bad_arguments_are_explained(capsys):
     with pytest.raises(SystemExit):
         main(["--model", "mvp", "--conditions", "pan", "--out", "x.pt"])
-    assert "expected 'all' or a comma list" in capsys.readouterr().err
+    assert "comma-separated list of conditions" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        main(["--model", "mvp", "--blank-local", "1.5", "--out", "x.pt"])
+    assert "--blank-local must be in [0, 1)" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        main(["--model", "Single-View", "--blank-local", "0.3", "--out", "x.pt"])
+    assert "needs a multi-view model" in capsys.readouterr().err
 
 
 @pytest.mark.slow

@@ -1,6 +1,7 @@
 """The BarrettHand BH8-282: parameters, kinematics and coupling, URDF.
 
-``BarrettParams`` holds every number (from ``shared/BARRETT.md``), ``HandKinematics`` turns them
+``BarrettParams`` holds every number (from ``hands/barrett/README.md``), ``HandKinematics`` turns
+them
 into joints, links and collision primitives, and :mod:`hands.barrett.urdf` writes the URDF that
 pybullet loads.
 """

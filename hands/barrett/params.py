@@ -1,8 +1,8 @@
 """BarrettHand BH8-282 dimensions, joint ranges and coupling: one frozen dataclass.
 
-Every number comes from ``shared/BARRETT.md`` (itself a digest of GraspIt!'s ``Barrett.xml``, the
-ROS ``bh282.urdf.xacro`` and Barrett's DH table). Where the sources disagree, the first column of
-BARRETT.md is used and the alternatives are named in the comment next to the field. Numbers that
+Every number comes from ``hands/barrett/README.md`` (a digest of GraspIt!'s ``Barrett.xml``, the
+ROS ``bh282.urdf.xacro`` and Barrett's DH table). Where the sources disagree, its "used" column
+is followed and the alternatives are named in the comment next to the field. Numbers that
 none of the sources give (marked "chosen") are filled in so that the primitives are consistent
 with the quoted dimensions; they only affect the collision shapes and the URDF inertias.
 
@@ -104,5 +104,5 @@ class BarrettParams:
             raise ValueError("finger_dof_max_deg × distal_ratio exceeds the distal joint limit")
 
 
-#: The BH8-282 as BARRETT.md describes it.
+#: The BH8-282 as hands/barrett/README.md describes it.
 BH8_282 = BarrettParams()

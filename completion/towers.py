@@ -1,0 +1,220 @@
+"""The context towers of the multi-view models: how a frame sees the past.
+
+A view's token gets a sinusoidal encoding of its index and goes through causal Transformer
+blocks, Performer (FAVOR+ or ReLU kernel, constant-size memory) for ``mvp``, exact softmax
+attention with a key/value cache for ``mvt``, or an LSTM for ``lstm``. Each has a parallel
+``forward`` over (B, L, D) and a streaming ``step`` over (B, D) with a flat state dict; both give
+the same numbers. Shapes use the axis letters of :mod:`completion.model`.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import TYPE_CHECKING, Literal
+
+import torch
+from torch import Tensor, nn
+
+from completion.performer import (
+    FeatureMap,
+    causal_linear_attention,
+    causal_softmax_attention,
+    init_linear_attention_state,
+    linear_attention_step,
+)
+
+if TYPE_CHECKING:
+    from completion.model import ModelConfig
+
+State = dict[str, Tensor]
+
+
+def sinusoidal_encoding(positions: Tensor, dim: int, *, base: float = 10000.0) -> Tensor:
+    """Sinusoidal encoding of view indices: positions (...,) int -> (..., dim) float32.
+
+    Channel 2i is sin(t·base^(-2i/dim)), channel 2i+1 is cos of the same (Vaswani et al. 2017).
+    """
+    half = torch.arange(dim // 2, dtype=torch.float32, device=positions.device)
+    freqs = torch.exp(-math.log(base) * 2.0 * half / dim)  # (dim/2,)
+    angles = positions.to(torch.float32).unsqueeze(-1) * freqs  # (..., dim/2)
+    return torch.stack((angles.sin(), angles.cos()), dim=-1).flatten(-2)
+
+
+class CausalSelfAttention(nn.Module):
+    """Multi-head causal self-attention over views, Performer (linear) or exact softmax.
+
+    ``mechanism="performer"``: φ-features with a constant-size memory S (B, H, M, E),
+    z (B, H, M). ``mechanism="exact"``: softmax(q·k/√E) with a key/value cache (B, H, T, E).
+    """
+
+    def __init__(
+        self,
+        config: ModelConfig,
+        *,
+        mechanism: Literal["performer", "exact"],
+        generator: torch.Generator | None = None,
+    ) -> None:
+        super().__init__()
+        if mechanism not in ("performer", "exact"):
+            raise ValueError(f"mechanism must be 'performer' or 'exact', got {mechanism!r}")
+        self.mechanism = mechanism
+        self.n_heads = config.n_heads
+        self.head_dim = config.embed_dim // config.n_heads
+        self.qkv = nn.Linear(config.embed_dim, 3 * config.embed_dim)
+        self.out = nn.Linear(config.embed_dim, config.embed_dim)
+        self.qk_norm = config.qk_norm
+        self.features: FeatureMap | None = None
+        if mechanism == "performer":
+            self.features = FeatureMap(
+                self.head_dim,
+                kernel=config.kernel,
+                n_features=config.n_features,
+                generator=generator,
+            )
+
+    def _heads(self, x: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        """x (..., D) -> q, k, v each (..., H, E)."""
+        q, k, v = self.qkv(x).chunk(3, dim=-1)
+        shape = (*x.shape[:-1], self.n_heads, self.head_dim)
+        q, k, v = q.view(shape), k.view(shape), v.view(shape)
+        if self.qk_norm:  # per position and head: no statistic crosses views
+            q = nn.functional.layer_norm(q, (self.head_dim,))
+            k = nn.functional.layer_norm(k, (self.head_dim,))
+        return q, k, v
+
+    def forward(self, x: Tensor) -> Tensor:
+        """Parallel form: x (B, L, D) -> (B, L, D)."""
+        q, k, v = (t.transpose(1, 2) for t in self._heads(x))  # (B, H, L, E)
+        if self.features is not None:
+            y = causal_linear_attention(
+                self.features(q, is_query=True), self.features(k, is_query=False), v
+            )
+        else:
+            y = causal_softmax_attention(q, k, v)
+        y = y.to(x.dtype).transpose(1, 2).flatten(2)  # (B, L, D)
+        return self.out(y)
+
+    def init_state(self, batch: int, *, device: torch.device, prefix: str) -> State:
+        if self.features is not None:
+            s, z = init_linear_attention_state(
+                (batch, self.n_heads), self.features.n_features, self.head_dim, device=device
+            )
+            return {f"{prefix}S": s, f"{prefix}z": z}
+        empty = torch.zeros(batch, self.n_heads, 0, self.head_dim, device=device)
+        return {f"{prefix}k": empty, f"{prefix}v": empty.clone()}
+
+    def step(self, x: Tensor, state: State, *, prefix: str) -> tuple[Tensor, State]:
+        """Streaming form: x (B, D) -> (B, D) and this layer's new state entries."""
+        q, k, v = self._heads(x)  # (B, H, E)
+        if self.features is not None:
+            y, s, z = linear_attention_step(
+                self.features(q, is_query=True),
+                self.features(k, is_query=False),
+                v,
+                state[f"{prefix}S"],
+                state[f"{prefix}z"],
+            )
+            new = {f"{prefix}S": s, f"{prefix}z": z}
+        else:
+            keys = torch.cat((state[f"{prefix}k"], k.unsqueeze(2).to(torch.float32)), dim=2)
+            values = torch.cat((state[f"{prefix}v"], v.unsqueeze(2).to(torch.float32)), dim=2)
+            scores = (keys @ q.to(torch.float32).unsqueeze(-1)).squeeze(-1)  # (B, H, T)
+            weights = torch.softmax(scores * self.head_dim**-0.5, dim=-1)
+            y = (weights.unsqueeze(-2) @ values).squeeze(-2)  # (B, H, E)
+            new = {f"{prefix}k": keys, f"{prefix}v": values}
+        return self.out(y.to(x.dtype).flatten(1)), new
+
+
+class Block(nn.Module):
+    """Pre-LayerNorm Transformer block: x + Attn(LN x), then + MLP(LN ·) with ReLU."""
+
+    def __init__(
+        self,
+        config: ModelConfig,
+        *,
+        mechanism: Literal["performer", "exact"],
+        generator: torch.Generator | None = None,
+    ) -> None:
+        super().__init__()
+        d = config.embed_dim
+        self.norm1 = nn.LayerNorm(d)
+        self.attn = CausalSelfAttention(config, mechanism=mechanism, generator=generator)
+        self.norm2 = nn.LayerNorm(d)
+        self.mlp = nn.Sequential(
+            nn.Linear(d, config.mlp_ratio * d), nn.ReLU(), nn.Linear(config.mlp_ratio * d, d)
+        )
+
+    def forward(self, x: Tensor) -> Tensor:  # (B, L, D) -> (B, L, D)
+        x = x + self.attn(self.norm1(x))
+        return x + self.mlp(self.norm2(x))
+
+    def step(self, x: Tensor, state: State, *, prefix: str) -> tuple[Tensor, State]:
+        a, new = self.attn.step(self.norm1(x), state, prefix=prefix)  # (B, D)
+        x = x + a
+        return x + self.mlp(self.norm2(x)), new
+
+
+class AttentionTower(nn.Module):
+    """Positional encoding of the view index, causal Transformer blocks, final LayerNorm."""
+
+    def __init__(
+        self,
+        config: ModelConfig,
+        *,
+        mechanism: Literal["performer", "exact"],
+        generator: torch.Generator | None = None,
+    ) -> None:
+        super().__init__()
+        self.config = config
+        self.blocks = nn.ModuleList(
+            Block(config, mechanism=mechanism, generator=generator) for _ in range(config.n_layers)
+        )
+        self.norm = nn.LayerNorm(config.embed_dim)
+
+    def _position(self, x: Tensor, positions: Tensor) -> Tensor:
+        if self.config.pos_encoding == "none":
+            return x
+        pe = sinusoidal_encoding(positions, self.config.embed_dim, base=self.config.pos_base)
+        return x + pe.to(x.dtype)
+
+    def forward(self, x: Tensor) -> Tensor:  # (B, L, D) -> (B, L, D)
+        x = self._position(x, torch.arange(x.shape[1], device=x.device))
+        for block in self.blocks:
+            x = block(x)
+        return self.norm(x)
+
+    def init_state(self, batch: int, *, device: torch.device) -> State:
+        state: State = {}
+        for i, block in enumerate(self.blocks):
+            state |= block.attn.init_state(batch, device=device, prefix=f"layer{i}.")
+        return state
+
+    def step(self, x: Tensor, t: Tensor, state: State) -> tuple[Tensor, State]:
+        """x (B, D), t 0-d view index -> (B, D), new tower state."""
+        x = self._position(x, t.expand(x.shape[0]))
+        new: State = {}
+        for i, block in enumerate(self.blocks):
+            x, entries = block.step(x, state, prefix=f"layer{i}.")
+            new |= entries
+        return self.norm(x), new
+
+
+class LSTMTower(nn.Module):
+    """LSTM over frame embeddings (no positional encoding: the recurrence orders the views)."""
+
+    def __init__(self, config: ModelConfig) -> None:
+        super().__init__()
+        self.n_layers = config.n_layers
+        self.dim = config.embed_dim
+        self.lstm = nn.LSTM(config.embed_dim, config.embed_dim, config.n_layers, batch_first=True)
+
+    def forward(self, x: Tensor) -> Tensor:  # (B, L, D) -> (B, L, D)
+        return self.lstm(x)[0]
+
+    def init_state(self, batch: int, *, device: torch.device) -> State:
+        h = torch.zeros(self.n_layers, batch, self.dim, device=device)
+        return {"lstm.h": h, "lstm.c": h.clone()}
+
+    def step(self, x: Tensor, t: Tensor, state: State) -> tuple[Tensor, State]:
+        y, (h, c) = self.lstm(x.unsqueeze(1), (state["lstm.h"], state["lstm.c"]))
+        return y.squeeze(1), {"lstm.h": h, "lstm.c": c}

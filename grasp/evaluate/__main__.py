@@ -1,0 +1,5 @@
+import sys
+
+from grasp.evaluate.cli import main
+
+sys.exit(main())

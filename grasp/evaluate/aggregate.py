@@ -1,0 +1,217 @@
+"""From per-sequence results to the tables of results.json (means per cell, with their counts)."""
+
+from __future__ import annotations
+
+from collections.abc import Iterable
+
+import numpy as np
+
+from completion.scenes import CONDITIONS, SINGLE_OBJECT_CONDITIONS
+from grasp.evaluate.config import (
+    EVAL_SPLITS,
+    FOLDER_TABLE,
+    FSCORE_METRICS,
+    GRASP_SUCCESS,
+    MAIN_TABLE,
+    METRICS,
+    NAMED_OBJECTS_TABLE,
+    OBJECT_TABLE_CONDITION,
+    PAPER_TABLES,
+    TRUE_MESH,
+    Settings,
+)
+from grasp.evaluate.runner import SequenceResult, Timings
+from hands.barrett import JOINT_NAMES
+
+#: results.json key of each grasp metric inside a ``JointError.as_dict()``.
+_JOINT_KEYS = {"joint_error_deg": "error_deg", "joint_error_moving_deg": "error_moving_deg"}
+
+
+def mean_or_none(values: Iterable[float | None]) -> float | None:
+    """Mean of the values that are not None, rounded to 4 places; None when there are none."""
+    vals = [v for v in values if v is not None]
+    return round(float(np.mean(vals)), 4) if vals else None
+
+
+def aggregate(results: list[SequenceResult], settings: Settings, table: str) -> dict:
+    """Tables for one set of sequences: metric -> row -> condition -> split -> value (or None).
+
+    Also ``counts`` per cell (``sequences``; ``grasped``: sequences whose final view was grasped;
+    ``grasp_ok``: of those, how many gave a comparable grasp, i.e. how many the joint-error cell
+    averages), ``grasp_failures`` (the reasons of the others), ``per_view_jaccard`` (mean over
+    sequences per view index), ``joint_error_per_joint_deg`` and, per condition and split, the
+    F-score ``ceiling`` (the 40³ target itself scored like a prediction).
+    """
+    mine = [r for r in results if r.job.table == table]
+    conditions = sorted({r.job.condition for r in mine}, key=CONDITIONS.index)
+    splits = [s for s in EVAL_SPLITS if any(r.job.split == s for r in mine)]
+
+    def cell(c: str, s: str) -> list[SequenceResult]:
+        return [r for r in mine if r.job.condition == c and r.job.split == s]
+
+    tables: dict = {m: {} for m in (*METRICS, GRASP_SUCCESS)}
+    counts: dict = {}
+    per_view: dict = {}
+    failures: dict = {}
+    per_joint: dict = {}
+    for row in settings.rows:
+        for m in METRICS:
+            tables[m][row] = {c: {} for c in conditions}
+        counts[row] = {c: {} for c in conditions}
+        per_view[row] = {c: {} for c in conditions}
+        failures[row] = {c: {} for c in conditions}
+        per_joint[row] = {c: {} for c in conditions}
+        for c in conditions:
+            applies = c in SINGLE_OBJECT_CONDITIONS
+            for s in splits:
+                seqs = cell(c, s)
+                for m in ("jaccard", *FSCORE_METRICS):
+                    tables[m][row][c][s] = mean_or_none(np.mean(r.per_view[row][m]) for r in seqs)
+                grasped = [r.grasps[row] for r in seqs if row in r.grasps]
+                ok = [g for g in grasped if g["error_deg"] is not None]
+                for m, key in _JOINT_KEYS.items():
+                    tables[m][row][c][s] = mean_or_none(g[key] for g in ok) if applies else None
+                joints = [g["per_joint_deg"] for g in ok]
+                per_joint[row][c][s] = _by_joint(np.mean(joints, axis=0)) if joints else None
+                counts[row][c][s] = {
+                    "sequences": len(seqs),
+                    "grasped": len(grasped),
+                    "grasp_ok": len(ok),
+                }
+                failures[row][c][s] = sorted({g["reason"] for g in grasped if g["reason"]})
+                views = [r.per_view[row]["jaccard"] for r in seqs]
+                per_view[row][c][s] = np.round(np.mean(views, axis=0), 4).tolist() if seqs else []
+    success_counts: dict = {}
+    for row in (*settings.rows, TRUE_MESH):
+        tables[GRASP_SUCCESS][row] = {c: {} for c in conditions}
+        success_counts[row] = {c: {} for c in conditions}
+        for c in conditions:
+            for s in splits:
+                tested = [r.physics[row] for r in cell(c, s) if row in r.physics]
+                held = sum(t["success"] for t in tested)
+                applies = c in SINGLE_OBJECT_CONDITIONS and tested
+                tables[GRASP_SUCCESS][row][c][s] = round(held / len(tested), 4) if applies else None
+                success_counts[row][c][s] = {"tested": len(tested), "held": held}
+    ceiling = {
+        c: {
+            s: {m: mean_or_none(np.mean(r.ceiling[m]) for r in cell(c, s)) for m in FSCORE_METRICS}
+            for s in splits
+        }
+        for c in conditions
+    }
+    return {
+        "tables": tables,
+        "counts": counts,
+        "grasp_success_counts": success_counts,
+        "per_view_jaccard": per_view,
+        "grasp_failures": failures,
+        "joint_error_per_joint_deg": per_joint,
+        "ceiling": ceiling,
+        "conditions": conditions,
+        "splits": splits,
+    }
+
+
+def fscore_ceiling(ceiling: dict) -> dict:
+    """results.json's ``fscore_ceiling``: per condition F@1% and F@2% of a perfect completion
+    (mean over both splits' sequences, each weighted alike) and the per-split values."""
+    out = {}
+    for c, by_split in ceiling.items():
+        out[c] = {
+            m: mean_or_none(v[m] for v in by_split.values()) for m in FSCORE_METRICS
+        } | {"by_split": by_split}
+    return out
+
+
+def per_object_records(results: list[SequenceResult], settings: Settings) -> list[dict]:
+    records = []
+    for r in results:
+        for row in settings.rows:
+            g = r.grasps.get(row)
+            records.append(
+                {
+                    "table": r.job.table,
+                    "condition": r.job.condition,
+                    "split": r.job.split,
+                    "index": r.job.index,
+                    "object_ids": r.object_ids,
+                    "model": row,
+                    "jaccard": mean_or_none(r.per_view[row]["jaccard"]),
+                    "fscore_1": mean_or_none(r.per_view[row]["fscore_1"]),
+                    "fscore_2": mean_or_none(r.per_view[row]["fscore_2"]),
+                    "jaccard_per_view": [round(v, 4) for v in r.per_view[row]["jaccard"]],
+                    "joint_error_deg": None if g is None else g["error_deg"],
+                    "joint_error_moving_deg": None if g is None else g["error_moving_deg"],
+                    "joint_error_per_joint_deg": None if g is None else g["per_joint_deg"],
+                    "grasp": g,
+                }
+            )
+    return records
+
+
+def _by_joint(values: np.ndarray) -> dict[str, float]:
+    return dict(zip(JOINT_NAMES, np.round(values, 4).tolist(), strict=True))
+
+
+def _pooled_per_joint(results: list[SequenceResult], settings: Settings) -> dict:
+    """row -> joint -> mean |Δθ| over every grasped main-table sequence (both splits)."""
+    out = {}
+    for row in settings.rows:
+        joints = [
+            r.grasps[row]["per_joint_deg"]
+            for r in results
+            if r.job.table == MAIN_TABLE
+            and row in r.grasps
+            and r.grasps[row]["per_joint_deg"] is not None
+        ]
+        out[row] = _by_joint(np.mean(joints, axis=0)) if joints else None
+    return out
+
+
+def build_results(results: list[SequenceResult], settings: Settings, wall: dict) -> dict:
+    """Everything results.json holds, from the per-sequence results of one run."""
+    from grasp.evaluate.config import config_dict
+
+    timings = Timings()
+    for r in results:
+        timings.add(r.timings)
+    main = aggregate(results, settings, MAIN_TABLE)
+    out = {
+        "tables": main["tables"],
+        "counts": main["counts"],
+        "fscore_ceiling": fscore_ceiling(main["ceiling"]),
+        "grasp_success_counts": main["grasp_success_counts"],
+        "grasp_failures": main["grasp_failures"],
+        "joint_error_per_joint_deg": main["joint_error_per_joint_deg"],
+        "pooled_joint_error_per_joint_deg": _pooled_per_joint(results, settings),
+        "per_view_jaccard": main["per_view_jaccard"],
+        "named_objects": None,
+        "objects_dir": None,
+        "per_object": per_object_records(results, settings),
+        "config": config_dict(settings),
+        "paper_tables": PAPER_TABLES,
+        "timings_s": {
+            "stages_wall_summed_over_sequences": {k: round(v, 2) for k, v in timings.wall.items()},
+            "stages_cpu_summed_over_sequences": {k: round(v, 2) for k, v in timings.cpu.items()},
+            "wall": {k: round(v, 2) for k, v in wall.items()},
+        },
+    }
+    for table, key in ((NAMED_OBJECTS_TABLE, "named_objects"), (FOLDER_TABLE, "objects_dir")):
+        if any(r.job.table == table for r in results):
+            agg = aggregate(results, settings, table)
+            c = OBJECT_TABLE_CONDITION
+            out[key] = {
+                "condition": c,
+                "split": "test",
+                "tables": {
+                    m: {row: agg["tables"][m][row][c]["test"] for row in settings.rows}
+                    for m in METRICS
+                },
+                "counts": {row: agg["counts"][row][c]["test"] for row in settings.rows},
+                "grasp_failures": {
+                    row: agg["grasp_failures"][row][c]["test"] for row in settings.rows
+                },
+                "fscore_ceiling": agg["ceiling"][c]["test"],
+                "objects": [r.object_ids[0] for r in results if r.job.table == table],
+            }
+    return out

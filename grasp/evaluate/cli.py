@@ -1,0 +1,221 @@
+"""``python -m grasp.evaluate``: the command line, and :func:`evaluate`, the whole run."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import time
+from pathlib import Path
+
+from completion.cli import integer_at_least, name_list
+from completion.objects import load_object, objects_in_folder
+from completion.prior import PRIOR_FILE
+from completion.scenes import CONDITIONS, VIEWS
+from grasp.evaluate.aggregate import build_results
+from grasp.evaluate.config import MODEL_NAMES, PRESETS, PRIOR, ROWS, Settings
+from grasp.evaluate.figures import write_figures
+from grasp.evaluate.report import markdown_report
+from grasp.evaluate.runner import make_jobs, run_jobs
+
+
+def evaluate(settings: Settings, *, out: Path | None = None, progress: bool = True) -> dict:
+    """Run the whole evaluation; write results.json, results.md and figures when ``out``."""
+    t0 = time.perf_counter()
+    jobs = make_jobs(settings)
+    raw = run_jobs(settings, jobs, progress=progress)
+    t1 = time.perf_counter()
+    wall = {"sequences": t1 - t0}
+    results = build_results(raw, settings, wall)
+    if out is not None:
+        out.mkdir(parents=True, exist_ok=True)
+        t2 = time.perf_counter()
+        if settings.examples:
+            write_figures(results, raw, out)
+        results["timings_s"]["wall"]["figures"] = round(time.perf_counter() - t2, 2)
+        results["timings_s"]["wall"]["total"] = round(time.perf_counter() - t0, 2)
+        (out / "results.json").write_text(json.dumps(results, indent=1))
+        (out / "results.md").write_text(markdown_report(results))
+    else:
+        results["timings_s"]["wall"]["total"] = round(time.perf_counter() - t0, 2)
+    return results
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="python -m grasp.evaluate",
+        description="The paper's evaluation: Jaccard, F-score@1%/2% and grasp joint error for "
+        "every model on freshly generated scenes (deterministic from --seed).",
+    )
+    size = p.add_mutually_exclusive_group()
+    size.add_argument(
+        "--quick",
+        action="store_const",
+        const="quick",
+        dest="preset",
+        help="a smoke test of the whole chain (about a minute on two free cores)",
+    )
+    size.add_argument(
+        "--full",
+        action="store_const",
+        const="full",
+        dest="preset",
+        help="50 sequences per cell, the planner's 64 candidates (about 40 min on two cores)",
+    )
+    p.set_defaults(preset="default")
+    p.add_argument(
+        "--conditions",
+        type=name_list(CONDITIONS, "conditions"),
+        default=CONDITIONS,
+        help="comma-separated conditions (default: all five)",
+    )
+    p.add_argument(
+        "--models",
+        type=name_list(ROWS, "rows"),
+        default=ROWS,
+        help=f"comma-separated rows (default: all of {', '.join(ROWS)})",
+    )
+    p.add_argument(
+        "--objects",
+        type=Path,
+        default=None,
+        metavar="DIR",
+        help="also evaluate every OBJ/STL/PLY mesh in DIR (camera pan, one sequence each)",
+    )
+    p.add_argument(
+        "--count",
+        type=integer_at_least(1),
+        default=None,
+        help="sequences per condition and split (overrides the preset)",
+    )
+    p.add_argument(
+        "--grasp-count",
+        type=integer_at_least(0),
+        default=None,
+        help="of those, how many are also grasped (single-object conditions)",
+    )
+    p.add_argument(
+        "--physics-count",
+        type=integer_at_least(0),
+        default=None,
+        metavar="N",
+        help="of the grasped sequences, how many are also lift-tested in pybullet dynamics "
+        "(grasp success; 0 = none; default: 5, 1 with --quick, 10 with --full)",
+    )
+    p.add_argument(
+        "--named",
+        type=integer_at_least(0),
+        default=None,
+        help="held-out named pybullet_data objects to evaluate (0 = none)",
+    )
+    p.add_argument(
+        "--candidates",
+        type=integer_at_least(1),
+        default=None,
+        help="grasp planner candidates per plan (overrides the preset)",
+    )
+    p.add_argument("--views", type=integer_at_least(2), default=VIEWS, help="views per sequence")
+    p.add_argument(
+        "--workers",
+        type=integer_at_least(1),
+        default=None,
+        help="worker processes (default: the CPUs this process may use)",
+    )
+    p.add_argument("--seed", type=int, default=0, help="one seed for scenes, samples and grasps")
+    p.add_argument(
+        "--weights",
+        type=Path,
+        default=None,
+        metavar="DIR",
+        help="folder of <model>.pt checkpoints (default: completion/weights/)",
+    )
+    p.add_argument(
+        "--out",
+        type=Path,
+        default=Path("evaluation"),
+        metavar="DIR",
+        help="where results.json, results.md and the figures go (default: evaluation/)",
+    )
+    p.add_argument("--no-figures", action="store_true", help="skip the PNG figures")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    return p
+
+
+def settings_from_args(args: argparse.Namespace, parser: argparse.ArgumentParser) -> Settings:
+    from completion.model import WEIGHTS_DIR
+
+    preset = PRESETS[args.preset]
+    weights = args.weights if args.weights is not None else WEIGHTS_DIR
+    paths = []
+    for name in args.models:
+        if name not in MODEL_NAMES:
+            continue
+        path = Path(weights) / f"{name}.pt"
+        if not path.is_file():
+            train = f"python -m completion.train --model {name} --out {path}"
+            if name in ("mvp3", "mvp6"):
+                train = f"python -m completion.train --model {name} --views {name[-1]} --out {path}"
+            parser.exit(
+                2,
+                f"{parser.prog}: error: missing weights for model {name!r}: {path} "
+                f"does not exist. Train them with `{train}` (see "
+                "completion/weights/README.md), pass --weights DIR, or leave the "
+                f"model out with --models.\n",
+            )
+        paths.append((name, str(path)))
+    objects: tuple[str, ...] = ()
+    if args.objects is not None:
+        try:
+            objects = tuple(objects_in_folder(args.objects))
+            for object_id in objects:
+                load_object(object_id)  # unreadable meshes fail here, not in a worker
+        except ValueError as exc:
+            parser.error(f"--objects: {exc}")
+    workers = args.workers
+    if workers is None:
+        workers = (
+            len(os.sched_getaffinity(0))
+            if hasattr(os, "sched_getaffinity")
+            else (os.cpu_count() or 1)
+        )
+    prior_path = Path(weights) / PRIOR_FILE
+    if PRIOR in args.models and not prior_path.is_file():
+        parser.exit(
+            2,
+            f"{parser.prog}: error: missing the prior row's file {prior_path}. Build it with "
+            f"`python -m completion.prior --out {prior_path}`, pass --weights DIR, or leave "
+            "the row out with --models.\n",
+        )
+    count = args.count if args.count is not None else preset.count
+    return Settings(
+        rows=tuple(args.models),
+        model_paths=tuple(paths),
+        prior_path=str(prior_path) if PRIOR in args.models else "",
+        conditions=tuple(args.conditions),
+        count=count,
+        grasp_count=min(
+            count, args.grasp_count if args.grasp_count is not None else preset.grasp_count
+        ),
+        physics_count=args.physics_count
+        if args.physics_count is not None
+        else preset.physics_count,
+        named=args.named if args.named is not None else preset.named,
+        objects=objects,
+        views=args.views,
+        seed=args.seed,
+        candidates=args.candidates if args.candidates is not None else preset.candidates,
+        workers=workers,
+        examples=not args.no_figures,
+    )
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    settings = settings_from_args(args, parser)
+    results = evaluate(settings, out=args.out, progress=not args.quiet)
+    print(markdown_report(results))
+    figures = "" if args.no_figures else " and the figures"
+    print(f"wrote {args.out / 'results.json'}, {args.out / 'results.md'}{figures}")
+    return 0
+

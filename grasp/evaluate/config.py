@@ -1,0 +1,224 @@
+"""What an evaluation run is: its rows, conditions, metrics, presets, settings and jobs, and the
+paper's numbers to print beside ours."""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+
+from completion.scenes import CONDITIONS, VIEWS
+
+MODEL_NAMES: tuple[str, ...] = ("single_view", "mvp", "mvt", "lstm", "mvp3", "mvp6")
+#: The input-free reference row (:mod:`completion.prior`): a fixed shape in every view's grid.
+PRIOR = "prior"
+FUSION = "registered_fusion"
+#: Rows that are not learned models (no checkpoint; never bold in the tables).
+REFERENCE_ROWS: tuple[str, ...] = (PRIOR, FUSION)
+ROWS: tuple[str, ...] = (*MODEL_NAMES, *REFERENCE_ROWS)
+ROW_LABELS = {
+    "single_view": "Single-View",
+    "mvp": "MVP",
+    "mvt": "MVT",
+    "lstm": "LSTM",
+    "mvp3": "MVP3",
+    "mvp6": "MVP6",
+    PRIOR: "Prior, ignores the input (ref.)",
+    FUSION: "Registered fusion (ref.)",
+    "true_mesh": "True mesh (upper bound)",
+}
+#: The grasp-success row of grasps planned on the true mesh itself (the physics upper bound).
+TRUE_MESH = "true_mesh"
+#: Column order of the paper's tables.
+PAPER_ORDER: tuple[str, ...] = (
+    "object_hiding",
+    "object_reveal",
+    "camera_pan",
+    "slide_behind",
+    "two_object_pan",
+)
+CONDITION_LABELS = {
+    "object_hiding": "Object Hiding",
+    "object_reveal": "Object Reveal",
+    "camera_pan": "Camera Pan",
+    "slide_behind": "Slide Behind Other",
+    "two_object_pan": "Two Object Pan",
+}
+EVAL_SPLITS: tuple[str, ...] = ("train", "test")
+METRICS: tuple[str, ...] = (
+    "jaccard",
+    "fscore_1",
+    "fscore_2",
+    "joint_error_deg",
+    "joint_error_moving_deg",
+)
+#: Metrics of the grasp on the final view (single-object conditions only).
+JOINT_METRICS: tuple[str, ...] = ("joint_error_deg", "joint_error_moving_deg")
+FSCORE_METRICS: tuple[str, ...] = ("fscore_1", "fscore_2")
+METRIC_TITLES = {
+    "jaccard": "Table I: Jaccard (mean over views; higher is better)",
+    "fscore_1": "Table II: F-score@1% (mean over views; higher is better)",
+    "fscore_2": "F-score@2% (mean over views; higher is better)",
+    "joint_error_deg": "Table III: grasp joint error, degrees, mean over the 8 joints as in the "
+    "paper (final view; lower is better)",
+    "joint_error_moving_deg": "Grasp joint error, degrees, mean over the 6 joints that move "
+    "(final view; lower is better)",
+}
+HIGHER_IS_BETTER = {
+    "jaccard": True,
+    "fscore_1": True,
+    "fscore_2": True,
+    "joint_error_deg": False,
+    "joint_error_moving_deg": False,
+    "grasp_success": True,
+}
+#: Lift-test success rate (pybullet dynamics, final view of the single-object conditions).
+GRASP_SUCCESS = "grasp_success"
+GRASP_SUCCESS_TITLE = (
+    "Grasp success: planned on the prediction, lifted and shaken on the true object in pybullet "
+    "(final view; higher is better)"
+)
+#: The condition of the named-object and ``--objects`` tables.
+OBJECT_TABLE_CONDITION = "camera_pan"
+NAMED_OBJECTS_TABLE = "named"
+FOLDER_TABLE = "objects"
+MAIN_TABLE = "main"
+#: The paper's Tables I–III, (train, test) per condition in PAPER_ORDER; None = N/A there.
+_PAPER_ROWS = {
+    "jaccard": {
+        "single_view": (None, None, (0.91, 0.88), None, (0.90, 0.87)),
+        "mvp": ((0.90, 0.87), (0.80, 0.78), (0.96, 0.90), (0.97, 0.95), (0.93, 0.89)),
+        "mvt": ((0.90, 0.86), (0.80, 0.78), (0.95, 0.90), (0.97, 0.95), (0.92, 0.88)),
+        "lstm": ((0.90, 0.86), (0.80, 0.77), (0.93, 0.90), (0.97, 0.95), (0.92, 0.88)),
+        "mvp3": ((0.89, 0.86), (0.78, 0.76), (0.92, 0.90), (0.95, 0.94), (0.91, 0.88)),
+        "mvp6": ((0.89, 0.87), (0.79, 0.77), (0.93, 0.90), (0.96, 0.95), (0.92, 0.88)),
+    },
+    "fscore_1": {
+        "single_view": (None, None, (0.90, 0.87), None, (0.90, 0.87)),
+        "mvp": ((0.90, 0.86), (0.75, 0.71), (0.95, 0.90), (0.97, 0.95), (0.92, 0.88)),
+        "mvt": ((0.90, 0.85), (0.75, 0.71), (0.94, 0.90), (0.97, 0.95), (0.91, 0.87)),
+        "lstm": ((0.90, 0.85), (0.75, 0.69), (0.92, 0.90), (0.97, 0.95), (0.92, 0.87)),
+        "mvp3": ((0.89, 0.86), (0.72, 0.70), (0.91, 0.88), (0.95, 0.94), (0.91, 0.87)),
+        "mvp6": ((0.88, 0.85), (0.74, 0.72), (0.92, 0.90), (0.96, 0.95), (0.91, 0.88)),
+    },
+    "joint_error_deg": {
+        "single_view": (None, None, (4.57, 4.62), None, None),
+        "mvp": ((4.10, 4.16), (3.80, 3.94), (3.75, 3.83), None, None),
+        "mvt": ((4.14, 4.19), (3.85, 3.98), (3.79, 3.84), None, None),
+        "lstm": ((4.15, 4.22), (3.88, 3.97), (3.82, 3.89), None, None),
+        "mvp3": ((4.23, 4.28), (4.00, 4.09), (3.98, 4.05), None, None),
+        "mvp6": ((4.18, 4.22), (3.94, 3.99), (3.92, 3.98), None, None),
+    },
+}
+PAPER_TABLES: dict = {
+    metric: {
+        row: {
+            c: {"train": None if v is None else v[0], "test": None if v is None else v[1]}
+            for c, v in zip(PAPER_ORDER, values, strict=True)
+        }
+        for row, values in rows.items()
+    }
+    for metric, rows in _PAPER_ROWS.items()
+}
+"""The paper's numbers in the layout of results.json's ``tables`` (for side-by-side reports)."""
+#: Decision threshold of a checkpoint that does not store one.
+DEFAULT_THRESHOLD = 0.5
+
+
+@dataclass(frozen=True)
+class Preset:
+    """Sizes of a run: sequences per (condition, split), named objects, planner candidates."""
+
+    count: int
+    named: int
+    candidates: int
+    grasp_count: int  # sequences per (condition, split) that are also grasped
+    physics_count: int  # of the grasped ones, how many are also lift-tested in pybullet
+
+
+#: Sizes per preset, from measured costs on one core (process time): generating a sequence
+#: 0.2–0.45 s; running the six models over it 0.2 s; Jaccard + F-score of 12 views × 7 rows
+#: 1.7 s; one joint error (collision model of the completion, plan, two re-grasps)
+#: ≈ 0.15 s + 0.02 s per planner candidate, × 7 rows per grasped sequence.
+#: One pybullet lift test (grasp success) ≈ 0.55 s, × 8 (7 rows + the true mesh) per
+#: lift-tested sequence.
+PRESETS: dict[str, Preset] = {
+    # ≈ 90 core-seconds: a smoke test of the whole chain (about a minute on two cores).
+    "quick": Preset(count=2, named=3, candidates=8, grasp_count=2, physics_count=1),
+    # The command with no arguments (timings in the README): 100 sequences (10 per condition
+    # and split), all 60 single-object ones grasped with 24 candidates (the planner's 24
+    # principal-axis poses), 5 of them per cell lift-tested, and the 10 named objects.
+    "default": Preset(count=10, named=10, candidates=24, grasp_count=10, physics_count=5),
+    # ≈ 4,500 core-seconds (about 40 minutes on two cores; use --workers on a bigger machine):
+    # 50 sequences per cell and the planner's full 64 candidates.
+    "full": Preset(count=50, named=10, candidates=64, grasp_count=50, physics_count=10),
+}
+
+
+@dataclass(frozen=True)
+class Settings:
+    """Everything a run depends on (written to results.json as ``config``)."""
+
+    rows: tuple[str, ...] = ROWS
+    model_paths: tuple[tuple[str, str], ...] = ()  # (name, checkpoint path) per model row
+    prior_path: str = ""  # the prior row's file (completion/weights/prior.npz)
+    conditions: tuple[str, ...] = CONDITIONS
+    count: int = PRESETS["default"].count
+    grasp_count: int = PRESETS["default"].grasp_count
+    physics_count: int = PRESETS["default"].physics_count
+    named: int = PRESETS["default"].named
+    objects: tuple[str, ...] = ()  # file: ids of --objects DIR
+    views: int = VIEWS
+    seed: int = 0
+    candidates: int = PRESETS["default"].candidates
+    samples: int = 8192
+    workers: int = 1
+    examples: bool = True
+
+    def __post_init__(self) -> None:
+        unknown = [r for r in self.rows if r not in ROWS]
+        if unknown or not self.rows:
+            raise ValueError(f"rows must be a non-empty subset of {ROWS}, got {self.rows}")
+        bad = [c for c in self.conditions if c not in CONDITIONS]
+        if bad:
+            raise ValueError(f"conditions must be among {CONDITIONS}, got {bad}")
+        missing = [r for r in self.rows if r in MODEL_NAMES and r not in dict(self.model_paths)]
+        if missing:
+            raise ValueError(f"no checkpoint path given for model rows {missing}")
+        if PRIOR in self.rows and not self.prior_path:
+            raise ValueError("the prior row needs prior_path (completion/weights/prior.npz)")
+        for name in (
+            "count",
+            "grasp_count",
+            "physics_count",
+            "named",
+            "candidates",
+            "samples",
+            "workers",
+        ):
+            if getattr(self, name) < (1 if name in ("candidates", "samples", "workers") else 0):
+                raise ValueError(f"{name} out of range: {getattr(self, name)}")
+        if self.views < 2:
+            raise ValueError(f"views must be >= 2, got {self.views}")
+
+
+@dataclass(frozen=True)
+class Job:
+    """One sequence to evaluate."""
+
+    table: str  # MAIN_TABLE, NAMED_OBJECTS_TABLE or FOLDER_TABLE
+    condition: str
+    split: str
+    index: int
+    pool: tuple[str, ...] | None = None  # object ids to draw from (None: the split's library)
+    grasp: bool = False
+    example: bool = False
+    physics: bool = False  # also lift-test the grasps in pybullet (grasped jobs only)
+
+
+def config_dict(settings: Settings) -> dict:
+    """results.json's ``config``: the settings as plain JSON."""
+    d = asdict(settings)
+    d["model_paths"] = dict(settings.model_paths)
+    d["objects"] = list(settings.objects)
+    d["fscore_fractions"] = [0.01, 0.02]
+    d["splits"] = list(EVAL_SPLITS)
+    return d

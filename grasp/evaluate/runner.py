@@ -1,0 +1,412 @@
+"""The per-sequence work of an evaluation and the pool that runs it.
+
+One :class:`Job` is one generated sequence. :class:`Evaluator` (one per worker process) renders
+it, runs every row over it, scores each view (Jaccard against the 40³ target, F-score against the
+true objects' surfaces, and the same F-score of the target itself: the ceiling), grasps the final
+view of single-object sequences and lift-tests some of those grasps in pybullet.
+"""
+
+from __future__ import annotations
+
+import time
+import zlib
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from completion import grid as G
+from completion.bullet import quiet_fds
+from completion.objects import load_object, object_ids
+from completion.scenes import SINGLE_OBJECT_CONDITIONS, Sequence
+from grasp.evaluate.config import (
+    DEFAULT_THRESHOLD,
+    EVAL_SPLITS,
+    FOLDER_TABLE,
+    FUSION,
+    MAIN_TABLE,
+    NAMED_OBJECTS_TABLE,
+    OBJECT_TABLE_CONDITION,
+    PRIOR,
+    TRUE_MESH,
+    Job,
+    Settings,
+)
+
+STAGES: tuple[str, ...] = (
+    "generation",
+    "inference",
+    "completion_metrics",
+    "grasping",
+    "physics",
+)
+
+
+@dataclass
+class Timings:
+    """Seconds per stage, summed over sequences: wall clock and this process's CPU time.
+
+    The CPU time does not grow when other jobs compete for the cores, so it is the measure to
+    size runs by (a run on N free cores takes about total CPU / N).
+    """
+
+    wall: dict[str, float] = field(default_factory=lambda: dict.fromkeys(STAGES, 0.0))
+    cpu: dict[str, float] = field(default_factory=lambda: dict.fromkeys(STAGES, 0.0))
+
+    def add(self, other: Timings) -> None:
+        for stage in STAGES:
+            self.wall[stage] += other.wall[stage]
+            self.cpu[stage] += other.cpu[stage]
+
+
+class _StageClock:
+    """Charges the wall and CPU time since the previous call to a stage of a :class:`Timings`."""
+
+    def __init__(self, timings: Timings) -> None:
+        self.timings = timings
+        self.wall, self.cpu = time.perf_counter(), time.process_time()
+
+    def charge(self, stage: str) -> None:
+        wall, cpu = time.perf_counter(), time.process_time()
+        self.timings.wall[stage] += wall - self.wall
+        self.timings.cpu[stage] += cpu - self.cpu
+        self.wall, self.cpu = wall, cpu
+
+
+@dataclass
+class SequenceResult:
+    job: Job
+    object_ids: list[str]
+    # row -> metric -> per-view list (jaccard, fscore_1, fscore_2)
+    per_view: dict[str, dict[str, list[float]]]
+    # row -> JointError.as_dict() (only for grasped jobs)
+    grasps: dict[str, dict] = field(default_factory=dict)
+    timings: Timings = field(default_factory=Timings)
+    example: dict | None = None  # final-view grids for the figures
+    # row (and TRUE_MESH) -> lift test summary (only for physics jobs)
+    physics: dict[str, dict] = field(default_factory=dict)
+    # fscore_1 / fscore_2 -> per-view F-score of the 40³ target itself (a perfect completion)
+    ceiling: dict[str, list[float]] = field(default_factory=dict)
+
+
+# ------------------------------------------------------------------------------ fusion baseline
+
+#: Sub-voxel offsets (in voxels) at which an observed voxel is carried into another grid, so that
+#: a coarser source grid leaves no holes in a finer destination grid.
+_SUBVOXEL = np.array(
+    [[x, y, z] for x in (-0.25, 0.25) for y in (-0.25, 0.25) for z in (-0.25, 0.25)]
+)
+
+
+def registered_fusion(
+    inputs: np.ndarray, grid_to_camera: np.ndarray, camera_to_world: np.ndarray
+) -> np.ndarray:
+    """The known-pose reference: (L, 40, 40, 40) bool, view t = union of views 0…t in grid t.
+
+    inputs : (L, 40, 40, 40) bool observed voxels; grid_to_camera, camera_to_world : (L, 4, 4)
+    Each observed voxel (8 sub-voxel points) goes grid s → camera s → world → camera t → grid t.
+    """
+    inputs = np.asarray(inputs, dtype=bool)
+    n = len(inputs)
+    if inputs.shape[1:] != G.GRID_SHAPE or grid_to_camera.shape != (n, 4, 4):
+        raise ValueError("inputs must be (L, 40, 40, 40) with (L, 4, 4) transforms")
+    fused = np.zeros_like(inputs)
+    world: list[np.ndarray] = []
+    for t in range(n):
+        idx = np.argwhere(inputs[t]).astype(np.float64)
+        sub = (idx[:, None, :] + _SUBVOXEL[None]).reshape(-1, 3)
+        cam = G.indices_to_points(sub, grid_to_camera[t])
+        world.append(G.transform_points(cam, camera_to_world[t]))
+        seen = np.concatenate(world)
+        to_camera_t = np.linalg.inv(camera_to_world[t])
+        fused[t] = G.voxelize_points(G.transform_points(seen, to_camera_t), grid_to_camera[t])
+    return fused
+
+
+# ------------------------------------------------------------------------------ per-sequence work
+
+
+def key_seed(*parts: object) -> int:
+    """A stable 32-bit seed from the job's identity (same seed → same samples and grasps)."""
+    return zlib.crc32("/".join(map(str, parts)).encode())
+
+
+def object_meshes_in_camera(seq: Sequence, view: int) -> list:
+    """The true object meshes posed in view ``view``'s camera frame."""
+    to_camera = np.linalg.inv(seq.camera_to_world[view])
+    meshes = []
+    for object_id, pose in zip(
+        seq.meta["object_ids"], seq.meta["object_to_world"][view], strict=True
+    ):
+        mesh = load_object(object_id)
+        mesh.apply_transform(to_camera @ np.asarray(pose))
+        meshes.append(mesh)
+    return meshes
+
+
+def truth_mesh_in_latest_camera(seq: Sequence):
+    """The true object mesh (single-object sequences) posed in the final view's camera frame."""
+    ids = seq.meta["object_ids"]
+    if len(ids) != 1:
+        raise ValueError(f"the grasp ground truth needs a single-object sequence, got {ids}")
+    return object_meshes_in_camera(seq, len(seq) - 1)[0]
+
+
+class Evaluator:
+    """Owns what a worker keeps between sequences: a renderer, the loaded models, the prior."""
+
+    def __init__(self, settings: Settings) -> None:
+        import torch
+
+        from completion.model import load_model, read_checkpoint
+        from completion.prior import load_prior
+        from completion.render import Renderer
+
+        self.settings = settings
+        self.renderer = Renderer()
+        self.models = {}
+        self.thresholds: dict[str, float] = {}
+        for name, path in settings.model_paths:
+            if name not in settings.rows:
+                continue
+            model = load_model(path).eval()
+            # the validation-chosen decision threshold: an attribute of the loaded model, or the
+            # checkpoint's "threshold" entry, else 0.5
+            threshold = getattr(model, "threshold", None)
+            if threshold is None:
+                threshold = read_checkpoint(path).get("threshold", DEFAULT_THRESHOLD)
+            self.thresholds[name] = float(threshold)
+            self.models[name] = model
+        self.prior = load_prior(settings.prior_path) if PRIOR in settings.rows else None
+        self.thresholds[FUSION] = 0.5  # a bool grid: meshed between empty and occupied
+        self._torch = torch
+
+    def close(self) -> None:
+        self.renderer.close()
+
+    def threshold(self, row: str, condition: str) -> float:
+        if row == PRIOR:
+            assert self.prior is not None
+            return self.prior.thresholds[condition]
+        return self.thresholds[row]
+
+    def probabilities(self, seq: Sequence) -> dict[str, np.ndarray]:
+        """row -> (L, 40, 40, 40) occupancy probabilities (bool for the fusion reference)."""
+        torch = self._torch
+        x = torch.from_numpy(seq.inputs[None].astype(np.float32))
+        out: dict[str, np.ndarray] = {}
+        with torch.no_grad():
+            for name in self.settings.rows:
+                if name == FUSION:
+                    out[name] = registered_fusion(
+                        seq.inputs, seq.grid_to_camera, seq.camera_to_world
+                    )
+                elif name == PRIOR:
+                    assert self.prior is not None
+                    out[name] = self.prior.probabilities(seq.meta["condition"], len(seq))
+                else:
+                    out[name] = torch.sigmoid(self.models[name](x))[0].numpy()
+        return out
+
+    def evaluate(self, job: Job) -> SequenceResult:
+        from completion.scenes import make_sequence
+        from grasp import metrics
+
+        s = self.settings
+        timings = Timings()
+        clock = _StageClock(timings)
+        seq = make_sequence(
+            job.condition,
+            job.split,
+            job.index,
+            s.seed,
+            views=s.views,
+            pool=list(job.pool) if job.pool is not None else None,
+            renderer=self.renderer,
+        )
+        clock.charge("generation")
+        probs = self.probabilities(seq)
+        clock.charge("inference")
+        thresholds = {row: self.threshold(row, job.condition) for row in s.rows}
+        per_view = {row: {"jaccard": [], "fscore_1": [], "fscore_2": []} for row in s.rows}
+        ceiling: dict[str, list[float]] = {"fscore_1": [], "fscore_2": []}
+        for v in range(len(seq)):
+            seed = key_seed(s.seed, job.table, job.condition, job.split, job.index, v)
+            transform = seq.grid_to_camera[v]
+            truth = metrics.truth_surface_sample(
+                object_meshes_in_camera(seq, v), transform, seed=seed
+            )
+            # every prediction, and the target, sampled with one seed independent of the truth's
+            scores = metrics.fscore_grids(
+                seq.targets[v], truth, transform, threshold=0.5, seed=seed + 1
+            )
+            ceiling["fscore_1"].append(scores[0].fscore)
+            ceiling["fscore_2"].append(scores[1].fscore)
+            for row in s.rows:
+                p, thr = probs[row][v], thresholds[row]
+                scores = metrics.fscore_grids(p, truth, transform, threshold=thr, seed=seed + 1)
+                per_view[row]["jaccard"].append(metrics.jaccard(p >= thr, seq.targets[v]))
+                per_view[row]["fscore_1"].append(scores[0].fscore)
+                per_view[row]["fscore_2"].append(scores[1].fscore)
+        clock.charge("completion_metrics")
+        grasps: dict[str, dict] = {}
+        physics: dict[str, dict] = {}
+        if job.grasp and job.condition in SINGLE_OBJECT_CONDITIONS:
+            from grasp.sim import CollisionScene
+
+            truth_mesh = truth_mesh_in_latest_camera(seq)
+            truth_scene = CollisionScene(truth_mesh)  # built once, reused
+            seed = key_seed(s.seed, job.table, job.condition, job.split, job.index, "grasp")
+            planned = {}
+            for row in s.rows:
+                mesh = metrics.mesh_or_none(
+                    probs[row][-1], seq.grid_to_camera[-1], threshold=thresholds[row]
+                )
+                result = metrics.grasp_joint_error(
+                    mesh, truth_scene, n_candidates=s.candidates, seed=seed
+                )
+                grasps[row] = result.as_dict()
+                planned[row] = result.planned
+            clock.charge("grasping")
+            if job.physics:
+                physics = self._lift_tests(job, truth_mesh, truth_scene, planned, seed)
+                clock.charge("physics")
+        clock.charge("grasping")
+        example = None
+        if job.example:
+            from grasp.evaluate.figures import figure_rows
+
+            example = {
+                "input": np.packbits(seq.inputs[-1]),
+                "target": np.packbits(seq.targets[-1]),
+                "grid_to_camera": seq.grid_to_camera[-1],
+                "camera_to_world": seq.camera_to_world[-1],
+                "object_to_world": seq.meta["object_to_world"][-1],
+                "rows": {r: np.packbits(probs[r][-1] >= thresholds[r]) for r in s.rows},
+                "probabilities": {r: probs[r][-1] for r in figure_rows(list(grasps))},
+                "thresholds": thresholds,
+            }
+        return SequenceResult(
+            job, list(seq.meta["object_ids"]), per_view, grasps, timings, example, physics, ceiling
+        )
+
+    def _lift_tests(self, job: Job, truth, truth_scene, planned: dict, plan_seed: int) -> dict:
+        """row -> lift test of the grasp planned on that row's prediction; TRUE_MESH -> of a
+        grasp planned on the true mesh. Every grasp is executed the same way, on the true object
+        with a guarded approach (move in until contact), so the true-mesh row is an upper bound
+        of the model rows and not a different protocol."""
+        from grasp.physics import lift_test
+        from grasp.planner import plan
+
+        s = self.settings
+        seed = key_seed(s.seed, job.table, job.condition, job.split, job.index, "physics")
+
+        def run(grasp) -> dict:
+            if grasp is None:
+                return {"success": False, "reason": "no grasp planned"}
+            with quiet_fds(1):
+                r = lift_test(truth, grasp, seed=seed, approach="contact")
+            return {
+                "success": bool(r.success),
+                "reason": r.reason,
+                "displacement": round(float(r.displacement), 6),
+                "held_s": round(float(r.held_s), 4),
+            }
+
+        out = {row: run(planned[row]) for row in s.rows}
+        best = plan(truth_scene, n_candidates=s.candidates, seed=plan_seed, top_k=1)
+        out[TRUE_MESH] = run(best[0] if best else None)
+        return out
+
+
+_WORKER: Evaluator | None = None
+
+
+def _init_worker(settings: Settings) -> None:
+    global _WORKER
+    import torch
+
+    torch.set_num_threads(1)
+    _WORKER = Evaluator(settings)
+
+
+def _run_job(job: Job) -> SequenceResult:
+    assert _WORKER is not None, "worker not initialised"
+    return _WORKER.evaluate(job)
+
+
+# ------------------------------------------------------------------------------ planning the run
+
+
+def make_jobs(settings: Settings) -> list[Job]:
+    """Every sequence of the run, in a fixed order (results do not depend on the workers)."""
+    jobs = []
+    for condition in settings.conditions:
+        for split in EVAL_SPLITS:
+            for index in range(settings.count):
+                jobs.append(
+                    Job(
+                        MAIN_TABLE,
+                        condition,
+                        split,
+                        index,
+                        grasp=index < settings.grasp_count,
+                        example=split == "test" and index == 0,
+                        physics=index < min(settings.grasp_count, settings.physics_count),
+                    )
+                )
+    named = object_ids("test", sources=("named",))[: settings.named]
+    folder = [(NAMED_OBJECTS_TABLE, object_id) for object_id in named]
+    folder += [(FOLDER_TABLE, object_id) for object_id in settings.objects]
+    for table in (NAMED_OBJECTS_TABLE, FOLDER_TABLE):
+        for index, object_id in enumerate(o for t, o in folder if t == table):
+            jobs.append(
+                Job(
+                    table,
+                    OBJECT_TABLE_CONDITION,
+                    "test",
+                    index,
+                    pool=(object_id,),
+                    grasp=settings.grasp_count > 0,
+                    example=index == 0,
+                )
+            )
+    return jobs
+
+
+def run_jobs(settings: Settings, jobs: list[Job], *, progress: bool = True) -> list[SequenceResult]:
+    """Evaluate every job, in a process pool when ``settings.workers > 1``; results in job order."""
+    from tqdm import tqdm
+
+    bar = tqdm(total=len(jobs), desc="evaluate", unit="seq", disable=not progress)
+    results: list[SequenceResult] = []
+    try:
+        if settings.workers <= 1 or len(jobs) <= 1:
+            import torch
+
+            threads = torch.get_num_threads()
+            _init_worker(settings)
+            try:
+                for job in jobs:
+                    results.append(_run_job(job))
+                    bar.update()
+            finally:
+                torch.set_num_threads(threads)
+                if _WORKER is not None:
+                    _WORKER.close()
+        else:
+            import multiprocessing as mp
+            from concurrent.futures import ProcessPoolExecutor
+
+            # spawn: torch and pybullet do not survive fork with live threads/clients.
+            with ProcessPoolExecutor(
+                min(settings.workers, len(jobs)),
+                mp_context=mp.get_context("spawn"),
+                initializer=_init_worker,
+                initargs=(settings,),
+            ) as pool:
+                for result in pool.map(_run_job, jobs, chunksize=1):
+                    results.append(result)
+                    bar.update()
+    finally:
+        bar.close()
+    return results

@@ -1,0 +1,3 @@
+from grasp.physics.cli import main
+
+raise SystemExit(main())

@@ -1,0 +1,224 @@
+"""The lift test: execute a planned grasp on the true object, lift, shake, and judge."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+import trimesh
+from scipy.spatial.transform import Rotation
+
+from grasp.autograsp import GraspResult, pregrasp_pose
+from grasp.physics.settings import (
+    APPROACHES,
+    DEFAULT_SETTINGS,
+    DENSITY_KG_M3,
+    GRAVITY,
+    Approach,
+    LiftResult,
+    LiftSettings,
+)
+from grasp.physics.world import DynamicWorld
+from grasp.quality import MU_RUBBER
+from grasp.sim import check_mesh, check_pose
+from hands.barrett import BH8_282, BarrettParams
+
+
+def _smooth(t: float) -> float:
+    """Cosine ease from 0 to 1 for t in [0, 1] (zero velocity at both ends)."""
+    t = min(max(t, 0.0), 1.0)
+    return 0.5 - 0.5 * math.cos(math.pi * t)
+
+
+def _schedule(
+    lift: float, shake: bool, directions: np.ndarray, s: LiftSettings
+) -> list[tuple[str, int, Callable[[float], np.ndarray]]]:
+    """The loaded phases: (name, steps, hand offset (3,) from the grasp pose at time t in it)."""
+    up = np.array([0.0, 0.0, 1.0])
+    lift_time = lift / s.lift_speed
+    phases: list[tuple[str, float, Callable[[float], np.ndarray]]] = [
+        ("settle", s.settle_time, lambda t: 0.0 * up),
+        ("lift", lift_time, lambda t: lift * _smooth(t / lift_time) * up),
+        ("lift", s.hold_time, lambda t: lift * up),
+    ]
+    if shake:
+        period = 1.0 / s.shake_frequency
+        for d in directions:
+            # out and back along d: A (1 − cos 2πft) / 2, peak acceleration 2π²f²A
+            phases.append(
+                (
+                    "shake",
+                    period,
+                    lambda t, d=d: lift * up + s.shake_amplitude * _smooth(2 * t / period) * d,
+                )
+            )
+        phases.append(("shake", s.hold_time, lambda t: lift * up))
+    return [(name, round(duration / s.time_step), f) for name, duration, f in phases]
+
+
+def lift_test(
+    mesh: trimesh.Trimesh,
+    grasp: GraspResult,
+    *,
+    seed: int = 0,
+    lift: float = 0.10,
+    shake: bool = True,
+    friction: float = MU_RUBBER,
+    density: float = DENSITY_KG_M3,
+    table: bool = False,
+    approach: Approach = "planned",
+    settings: LiftSettings = DEFAULT_SETTINGS,
+    params: BarrettParams = BH8_282,
+    cache_dir: str | Path | None = None,
+) -> LiftResult:
+    """Execute ``grasp`` on ``mesh`` in pybullet dynamics, lift and shake; did the object stay?
+
+    Parameters
+    ----------
+    mesh : trimesh.Trimesh
+        The true object in world coordinates (metres), the frame of ``grasp.palm_pose``.
+    grasp : GraspResult
+        A planned grasp (:func:`grasp.autograsp.autograsp`, :func:`grasp.planner.plan`). Its palm
+        pose and spread are used; the finger joints come from the simulated closing.
+    seed : int
+        Seeds the shake directions. The same inputs and seed give the same result.
+    lift : float
+        How far the hand rises along world +z (metres, >= 0).
+    shake : bool
+        Shake after the lift (``settings.shake_count`` cycles along seeded directions).
+    friction : float
+        Hand–object Coulomb friction μ (default 1.0, rubber; hands/barrett/README.md).
+    density : float
+        Object density in kg/m³ (default 500).
+    table : bool
+        Stand the object on a table (at its lowest point) with gravity on from the start, instead
+        of floating it on a weak support until the hand has closed.
+    approach : "planned" or "contact"
+        From the pre-grasp pose (``settings.pregrasp_backoff`` behind the palm pose, hand open),
+        "planned" moves the palm to ``grasp.palm_pose`` exactly (open loop, as for a grasp planned
+        on this mesh); "contact" moves along the approach axis until the hand first touches the
+        object, at most ``settings.overtravel`` past the planned pose (a guarded move, for a grasp
+        planned on another mesh, e.g. a predicted shape; DESIGN.md §7's re-approach).
+    settings : LiftSettings
+        Time step, torque limits, speeds, shake and tolerances.
+    params : BarrettParams
+        Hand dimensions (the URDF is generated from them).
+    cache_dir : path or None
+        Cache of convex decompositions (:func:`convex_decomposition`).
+
+    Returns
+    -------
+    LiftResult
+        ``success``, ``displacement``, ``slip``, ``held_s`` and more. A grasp that closes on
+        nothing is a failed result, not an exception.
+    """
+    check_mesh(mesh)
+    if not isinstance(grasp, GraspResult):
+        raise ValueError(f"grasp must be a GraspResult, got {type(grasp).__name__}")
+    if not (math.isfinite(lift) and lift >= 0.0):
+        raise ValueError(f"lift must be a finite distance >= 0 (metres), got {lift}")
+    if approach not in APPROACHES:
+        raise ValueError(f"approach must be one of {APPROACHES}, got {approach!r}")
+    s = settings
+    directions = np.random.default_rng(seed).normal(size=(s.shake_count, 3))
+    directions /= np.linalg.norm(directions, axis=1, keepdims=True)
+    palm = check_pose(grasp.palm_pose)
+    spread = float(grasp.dofs_deg.spread)
+    open_joints = [spread, 0.0, 0.0, spread, 0.0, 0.0, 0.0, 0.0]
+    backoff = pregrasp_pose(palm, s.pregrasp_backoff)[:3, 3] - palm[:3, 3]  # (3,) world
+
+    with DynamicWorld(
+        mesh,
+        friction=friction,
+        density=density,
+        table=table,
+        settings=s,
+        params=params,
+        cache_dir=cache_dir,
+    ) as world:
+        world.gravity(table)
+        if not table:
+            world.hold_object(s.support_factor * world.mass * GRAVITY)
+        world.place_hand(palm, open_joints, offset=backoff)
+        fingers = world.fingers()
+        # approach from the pre-grasp pose, hand open
+        if approach == "planned":  # to the planned palm pose, smooth start and stop
+            n = max(1, math.ceil(s.pregrasp_backoff / s.approach_speed / s.time_step))
+            path = [backoff * (1.0 - _smooth(i / n)) for i in range(1, n + 1)]
+        else:  # guarded: along the approach axis until the first touch, at constant speed
+            reach = s.pregrasp_backoff + s.overtravel
+            n = max(1, math.ceil(reach / s.approach_speed / s.time_step))
+            path = [backoff + reach * (i / n) * palm[:3, 2] for i in range(1, n + 1)]
+        for offset in path:
+            world.move_hand(offset)
+            world.hold_spread(spread)
+            world.hold_fingers_open(fingers)
+            world.step()
+            if approach == "contact" and world.n_contacts():
+                offset = world.hand_offset()  # stop where the hand is (it trails its target)
+                world.move_hand(offset)
+                break
+        travel = float(np.dot(offset - backoff, palm[:3, 2]))
+        # close
+        steps, settle_left = 0, round(s.close_settle / s.time_step)
+        while steps * s.time_step < s.close_timeout and settle_left > 0:
+            world.hold_spread(spread)
+            world.drive_fingers(fingers)
+            world.step()
+            steps += 1
+            if all(f.done for f in fingers):
+                settle_left -= 1
+        joints_deg = world.joint_values_deg()
+        contacts = world.n_contacts()
+        stops = tuple(f.stop for f in fingers)
+        ref_position, ref_rotation = world.object_in_palm()
+        # load: gravity on, support gone
+        world.hold_object(None)
+        world.gravity(True)
+        slip, held_s, phase, elapsed = 0.0, None, "held", 0.0
+        position, rotation = ref_position, ref_rotation
+        for name, n_steps, target in _schedule(lift, shake, directions, s):
+            for i in range(n_steps):
+                world.move_hand(target((i + 1) * s.time_step))
+                world.hold_spread(spread)
+                world.drive_fingers(fingers)
+                world.step()
+                elapsed += s.time_step
+                position, rotation = world.object_in_palm()
+                distance = float(np.linalg.norm(position - ref_position))
+                slip = max(slip, distance)
+                if held_s is None and distance > s.hold_tolerance:
+                    held_s, phase = elapsed, name
+                if distance > s.drop_distance:
+                    break
+            else:
+                continue
+            break
+
+    moved = position - ref_position
+    relative = ref_rotation.T @ rotation
+    rotation_deg = math.degrees(Rotation.from_matrix(relative).magnitude())
+    if held_s is None:
+        reason = "held through the lift" + (" and the shakes" if shake else "")
+    elif contacts == 0:
+        reason = f"the hand closed on nothing; the object fell ({phase})"
+    else:
+        reason = f"the object left the hand during {phase}, {held_s:.2f} s after gravity came on"
+    return LiftResult(
+        success=held_s is None,
+        reason=reason,
+        displacement=float(np.linalg.norm(moved)),
+        slip=slip,
+        offset=moved,
+        rotation_deg=rotation_deg,
+        held_s=elapsed if held_s is None else held_s,
+        total_s=elapsed,
+        phase=phase,
+        finger_stops=stops,
+        joints_deg=joints_deg,
+        mass=world.mass,
+        contacts=contacts,
+        travel=travel,
+    )

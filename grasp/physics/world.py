@@ -1,0 +1,390 @@
+"""The pybullet world of a lift test: a dynamic object and a free-base BarrettHand whose fingers
+follow the Barrett closing controller (breakaway included)."""
+
+from __future__ import annotations
+
+import contextlib
+import math
+import tempfile
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import trimesh
+
+from completion.bullet import direct_client, pose_to_pybullet, pybullet
+from grasp.physics.body import convex_decomposition, mass_properties, shrink, write_pieces
+from grasp.physics.settings import (
+    DEFAULT_SETTINGS,
+    DENSITY_KG_M3,
+    GRAVITY,
+    MESH_MARGIN_M,
+    LiftSettings,
+)
+from grasp.quality import MU_RUBBER
+from grasp.sim import JointInfo, check_mesh, check_pose
+from hands.barrett import BH8_282, FINGERS, JOINT_NAMES, BarrettParams
+
+
+def _invert(pose: np.ndarray) -> np.ndarray:
+    out = np.eye(4)
+    out[:3, :3] = pose[:3, :3].T
+    out[:3, 3] = -pose[:3, :3].T @ pose[:3, 3]
+    return out
+
+
+@dataclass
+class _Finger:
+    """Closing state of one finger (radians)."""
+
+    prox: int  # pybullet joint indices
+    dist: int
+    dof: float = 0.0  # commanded DOF (motor angle in J2 units)
+    mode: str = "coupled"  # coupled → breakaway → stopped; coupled → stopped; coupled → limit
+    stop: str = "timeout"
+    prox_count: int = 0  # consecutive stalled steps
+    dist_count: int = 0
+
+    @property
+    def done(self) -> bool:
+        return self.mode in ("stopped", "limit")
+
+
+class DynamicWorld:
+    """A pybullet world (its own DIRECT client) with a dynamic object and a free-base BarrettHand.
+
+    Parameters
+    ----------
+    mesh : trimesh.Trimesh
+        The object, world frame, metres; it starts where the mesh is, at rest.
+    friction : float
+        Lateral friction of the hand links (the object gets 1.0; pybullet multiplies them).
+    density : float
+        Object density (kg/m³).
+    table : bool
+        Put a static table top (1 m square) under the object's lowest point.
+    settings : LiftSettings
+    params : BarrettParams
+    cache_dir : path or None
+        Where the convex decomposition is cached (:func:`convex_decomposition`).
+
+    The hand is carried by a fixed constraint to the world (:meth:`place_hand`, :meth:`move_hand`)
+    and its fingers follow the Barrett closing controller (:meth:`drive_fingers`). Gravity starts
+    off; :meth:`gravity` switches it. Use as a context manager (or call :meth:`close`).
+    """
+
+    def __init__(
+        self,
+        mesh: trimesh.Trimesh,
+        *,
+        friction: float = MU_RUBBER,
+        density: float = DENSITY_KG_M3,
+        table: bool = False,
+        settings: LiftSettings = DEFAULT_SETTINGS,
+        params: BarrettParams = BH8_282,
+        cache_dir: str | Path | None = None,
+    ) -> None:
+        from hands.barrett.urdf import urdf_string
+
+        check_mesh(mesh)
+        if not (math.isfinite(friction) and friction >= 0.0):
+            raise ValueError(f"friction must be a finite coefficient >= 0, got {friction}")
+        self.settings = settings
+        self.params = params
+        obj_path, pieces = convex_decomposition(mesh, cache_dir=cache_dir)
+        self.mass, com, inertia = mass_properties(mesh, pieces, density)
+        principal, axes = np.linalg.eigh(inertia)
+        if np.linalg.det(axes) < 0:
+            axes[:, 2] *= -1.0
+        # the object's body frame: centre of mass and principal axes, placed in the mesh frame
+        body = np.eye(4)
+        body[:3, :3], body[:3, 3] = axes, com
+        to_body = _invert(body)
+        self._home: tuple[list[float], list[float]] | None = None
+        self._constraint: int | None = None
+        self._support: int | None = None
+
+        self.client = direct_client()
+        c = self.client
+        try:
+            c.setPhysicsEngineParameter(
+                fixedTimeStep=settings.time_step,
+                numSubSteps=0,
+                numSolverIterations=settings.solver_iterations,
+                deterministicOverlappingPairs=1,
+            )
+            self.gravity(False)
+            # pybullet pads every convex hull by MESH_MARGIN_M: shrink the pieces by as much so
+            # that the padded shape is the true one
+            body_pieces = [
+                shrink(piece, MESH_MARGIN_M) @ to_body[:3, :3].T + to_body[:3, 3]
+                for piece in pieces
+            ]
+            with tempfile.TemporaryDirectory() as tmp:
+                shape_path = Path(tmp) / "object.obj"
+                write_pieces(shape_path, body_pieces)
+                shape = c.createCollisionShape(pybullet.GEOM_MESH, fileName=str(shape_path))
+            position, orientation = pose_to_pybullet(body)
+            self.object_id = c.createMultiBody(
+                baseMass=self.mass,
+                baseCollisionShapeIndex=shape,
+                basePosition=position,
+                baseOrientation=orientation,
+            )
+            c.changeDynamics(
+                self.object_id,
+                -1,
+                localInertiaDiagonal=np.maximum(principal, 1e-12).tolist(),
+                lateralFriction=1.0,
+                frictionAnchor=1,
+                spinningFriction=0.0,
+                rollingFriction=0.0,
+                linearDamping=0.0,
+                angularDamping=0.0,
+            )
+            self.table_id: int | None = None
+            if table:
+                half = [0.5, 0.5, 0.025]
+                box = c.createCollisionShape(pybullet.GEOM_BOX, halfExtents=half)
+                centre = np.asarray(mesh.bounds).mean(axis=0)
+                centre[2] = float(mesh.bounds[0, 2]) - half[2]
+                self.table_id = c.createMultiBody(0.0, box, basePosition=centre.tolist())
+                c.changeDynamics(self.table_id, -1, lateralFriction=settings.table_friction)
+            with tempfile.TemporaryDirectory() as tmp:
+                urdf = Path(tmp) / "barrett.urdf"
+                urdf.write_text(urdf_string(params))
+                # implicit cylinders: pybullet would otherwise pad the palm's hull by its margin
+                self.hand_id = c.loadURDF(
+                    str(urdf),
+                    useFixedBase=False,
+                    flags=pybullet.URDF_USE_INERTIA_FROM_FILE | pybullet.URDF_USE_IMPLICIT_CYLINDER,
+                )
+            self.joints: dict[str, JointInfo] = {}
+            for index in range(c.getNumJoints(self.hand_id)):
+                info = c.getJointInfo(self.hand_id, index)
+                record = JointInfo(
+                    index, info[1].decode(), info[2], info[8], info[9], info[12].decode()
+                )
+                self.joints[record.name] = record
+            for link in range(-1, c.getNumJoints(self.hand_id)):
+                c.changeDynamics(
+                    self.hand_id,
+                    link,
+                    lateralFriction=float(friction),
+                    frictionAnchor=1,
+                    spinningFriction=0.0,
+                    rollingFriction=0.0,
+                    jointDamping=0.0,
+                    linearDamping=0.0,
+                    angularDamping=0.0,
+                )
+            # the base of a pybullet body is its inertial frame, not the URDF palm frame
+            inertial = c.getDynamicsInfo(self.hand_id, -1)
+            self._palm_in_base = c.invertTransform(inertial[3], inertial[4])
+        except Exception:
+            c.disconnect()
+            raise
+
+    # -- lifetime --------------------------------------------------------------------------------
+    def close(self) -> None:
+        """Disconnect the pybullet client (idempotent)."""
+        if self.client is not None:
+            with contextlib.suppress(pybullet.error):
+                self.client.disconnect()
+            self.client = None
+
+    def __enter__(self) -> DynamicWorld:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    # -- state -----------------------------------------------------------------------------------
+    def gravity(self, on: bool) -> None:
+        """Switch gravity (−z, :data:`GRAVITY` m/s²) on or off."""
+        self.client.setGravity(0.0, 0.0, -GRAVITY if on else 0.0)
+
+    def object_in_palm(self) -> tuple[np.ndarray, np.ndarray]:
+        """The object's centre of mass (3,) and body axes (3, 3) in the actual palm frame."""
+        c = self.client
+        base = c.getBasePositionAndOrientation(self.hand_id)
+        palm = c.multiplyTransforms(*base, *self._palm_in_base)
+        inverse = c.invertTransform(*palm)
+        position, orientation = c.multiplyTransforms(
+            *inverse, *c.getBasePositionAndOrientation(self.object_id)
+        )
+        rotation = np.reshape(c.getMatrixFromQuaternion(orientation), (3, 3))
+        return np.asarray(position), rotation
+
+    def joint_values_deg(self) -> np.ndarray:
+        """(8,) joint angles in degrees, :data:`JOINT_NAMES` order."""
+        indices = [self.joints[name].index for name in JOINT_NAMES]
+        return np.degrees([s[0] for s in self.client.getJointStates(self.hand_id, indices)])
+
+    def n_contacts(self) -> int:
+        """Number of hand–object contact points."""
+        return len(self.client.getContactPoints(self.hand_id, self.object_id))
+
+    def hold_object(self, force: float | None) -> None:
+        """Hold the object where it is by a constraint of at most ``force`` (N); None frees it.
+
+        It stands in for whatever supported the floating object before the grasp: it keeps the
+        object from drifting off when the palm touches it, and yields to the closing fingers.
+        """
+        c = self.client
+        if self._support is not None:
+            c.removeConstraint(self._support)
+            self._support = None
+        if force is None:
+            return
+        position, orientation = c.getBasePositionAndOrientation(self.object_id)
+        self._support = self._fix_to_world(self.object_id, position, orientation)
+        c.changeConstraint(self._support, maxForce=float(force))
+
+    def _fix_to_world(self, body: int, position, orientation) -> int:
+        """A fixed constraint holding ``body``'s base at a world pose (see changeConstraint)."""
+        return self.client.createConstraint(
+            body,
+            -1,
+            -1,
+            -1,
+            pybullet.JOINT_FIXED,
+            [0.0, 0.0, 0.0],
+            [0.0, 0.0, 0.0],
+            position,
+            childFrameOrientation=orientation,
+        )
+
+    # -- the hand --------------------------------------------------------------------------------
+    def place_hand(
+        self,
+        palm_pose: np.ndarray,
+        joints_deg: Sequence[float],
+        *,
+        offset: Sequence[float] = (0.0, 0.0, 0.0),
+    ) -> None:
+        """Put the hand at rest at ``palm_pose`` moved by ``offset`` (world, m), joints in degrees.
+
+        ``palm_pose`` becomes the carriage's home: :meth:`move_hand` translates from it.
+        """
+        c = self.client
+        position, orientation = pose_to_pybullet(check_pose(palm_pose))
+        base_in_palm = c.invertTransform(*self._palm_in_base)
+        self._home = c.multiplyTransforms(position, orientation, *base_in_palm)
+        start = (np.asarray(self._home[0]) + np.asarray(offset, dtype=np.float64)).tolist()
+        c.resetBasePositionAndOrientation(self.hand_id, start, self._home[1])
+        c.resetBaseVelocity(self.hand_id, [0.0, 0.0, 0.0], [0.0, 0.0, 0.0])
+        for name, value in zip(JOINT_NAMES, np.radians(joints_deg), strict=True):
+            c.resetJointState(self.hand_id, self.joints[name].index, float(value), 0.0)
+        if self._constraint is None:
+            self._constraint = self._fix_to_world(self.hand_id, start, self._home[1])
+        self.move_hand(offset)
+
+    def move_hand(self, offset: Sequence[float]) -> None:
+        """Drive the hand toward its home pose translated by ``offset`` (world, m)."""
+        if self._home is None:
+            raise ValueError("place_hand must come before move_hand")
+        target = (np.asarray(self._home[0]) + np.asarray(offset, dtype=np.float64)).tolist()
+        self.client.changeConstraint(
+            self._constraint,
+            jointChildPivot=target,
+            jointChildFrameOrientation=self._home[1],
+            maxForce=self.settings.hand_force,
+        )
+
+    def hand_offset(self) -> np.ndarray:
+        """(3,) where the hand actually is, as a world translation from its home pose (m)."""
+        if self._home is None:
+            raise ValueError("place_hand must come before hand_offset")
+        position, _ = self.client.getBasePositionAndOrientation(self.hand_id)
+        return np.asarray(position) - np.asarray(self._home[0])
+
+    def hold_spread(self, spread_deg: float) -> None:
+        """Position-control both spread joints at ``spread_deg`` with the spread torque limit."""
+        for name in ("f1_spread", "f2_spread"):
+            self._position(
+                self.joints[name].index, math.radians(spread_deg), self.settings.spread_torque
+            )
+
+    def fingers(self) -> list[_Finger]:
+        """Fresh closing state of the three fingers (open)."""
+        return [
+            _Finger(self.joints[f"{f}_prox"].index, self.joints[f"{f}_dist"].index) for f in FINGERS
+        ]
+
+    def hold_fingers_open(self, fingers: Sequence[_Finger]) -> None:
+        """Position-control every finger joint at 0 (open)."""
+        s = self.settings
+        for finger in fingers:
+            self._position(finger.prox, 0.0, s.proximal_torque)
+            self._position(finger.dist, 0.0, s.distal_torque)
+
+    def drive_fingers(self, fingers: Sequence[_Finger]) -> None:
+        """One control step of every finger: Barrett coupling and breakaway.
+
+        Coupled, the DOF rises at ``close_speed`` and J2 = DOF, J3 = DOF/3 under position control.
+        The controller watches the joints: a joint more than ``stall_lag`` behind its target and
+        slower than ``stall_speed`` for ``stall_steps`` steps has stalled. A stalled proximal whose
+        distal still moves breaks away: J2 then presses with its torque limit and the distal
+        target keeps following DOF/3. A stalled distal stops the finger: both joints press with
+        their limits. A finger whose DOF reaches its maximum untouched holds there ("limit").
+        """
+        s, c = self.settings, self.client
+        ratio = self.params.distal_ratio
+        dof_max = math.radians(self.params.finger_dof_max_deg)
+        j2_max = math.radians(self.params.proximal_max_deg)
+        for finger in fingers:
+            (q2, v2, *_), (q3, v3, *_) = c.getJointStates(self.hand_id, [finger.prox, finger.dist])
+            if finger.mode in ("coupled", "breakaway"):
+                if finger.mode == "coupled":
+                    stalled = min(finger.dof, j2_max) - q2 > s.stall_lag and v2 < s.stall_speed
+                    finger.prox_count = finger.prox_count + 1 if stalled else 0
+                stalled = ratio * finger.dof - q3 > s.stall_lag and v3 < ratio * s.stall_speed
+                finger.dist_count = finger.dist_count + 1 if stalled else 0
+                if finger.dist_count >= s.stall_steps:
+                    finger.stop = "distal" if finger.mode == "coupled" else "breakaway-distal"
+                    finger.mode = "stopped"
+                elif finger.mode == "coupled" and finger.prox_count >= s.stall_steps:
+                    if v3 < ratio * s.stall_speed:  # the distal is blocked too
+                        finger.stop, finger.mode = "distal", "stopped"
+                    else:
+                        finger.mode = "breakaway"
+                elif finger.dof >= dof_max:
+                    finger.stop = "limit" if finger.mode == "coupled" else "breakaway-limit"
+                    finger.mode = "limit" if finger.mode == "coupled" else "stopped"
+                else:
+                    finger.dof = min(finger.dof + s.close_speed * s.time_step, dof_max)
+            if finger.mode in ("coupled", "limit"):
+                self._position(finger.prox, min(finger.dof, j2_max), s.proximal_torque)
+            else:
+                self._press(finger.prox, s.proximal_torque)
+            if finger.mode == "stopped" and finger.stop != "breakaway-limit":
+                self._press(finger.dist, s.distal_torque)
+            else:
+                self._position(finger.dist, ratio * finger.dof, s.distal_torque)
+
+    def _position(self, joint: int, target: float, torque: float) -> None:
+        self.client.setJointMotorControl2(
+            self.hand_id,
+            joint,
+            pybullet.POSITION_CONTROL,
+            targetPosition=target,
+            force=torque,
+            positionGain=self.settings.position_gain,
+            velocityGain=self.settings.velocity_gain,
+        )
+
+    def _press(self, joint: int, torque: float) -> None:
+        # a velocity motor that cannot reach its target speed applies its full torque
+        self.client.setJointMotorControl2(
+            self.hand_id,
+            joint,
+            pybullet.VELOCITY_CONTROL,
+            targetVelocity=self.settings.close_speed,
+            force=torque,
+        )
+
+    def step(self) -> None:
+        """Advance the simulation by one ``time_step``."""
+        self.client.stepSimulation()
