@@ -261,6 +261,20 @@ def jaccard(prediction: np.ndarray, target: np.ndarray) -> np.ndarray:
     return np.where(union > 0, inter / np.maximum(union, 1), 1.0)
 
 
+def carry_grid(
+    grid_to_camera: np.ndarray, camera_to_world: np.ndarray, new_camera_to_world: np.ndarray
+) -> np.ndarray:
+    """The grid of a view that saw no object points: the previous view's grid, the same place in
+    the world, re-expressed in the new camera frame (``grid_to_camera`` for the new view).
+
+    grid_to_camera : (4, 4) the previous view's grid; camera_to_world, new_camera_to_world :
+    (4, 4) poses of the previous and the new camera. The scenes, the stream and the service all
+    carry a grid this way, so an empty view never moves the object with the camera.
+    """
+    old, new = _check_transform(camera_to_world), _check_transform(new_camera_to_world)
+    return np.linalg.inv(new) @ old @ _check_transform(grid_to_camera)
+
+
 def pitch_of(grid_to_camera: np.ndarray) -> float:
     """Voxel edge length in metres of a grid transform (cube root of its scale's determinant)."""
     t = np.asarray(grid_to_camera, dtype=np.float64)

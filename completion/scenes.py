@@ -259,7 +259,7 @@ def _observe(
     targets = np.zeros_like(inputs)
     transforms = np.zeros((views, 4, 4))
     depths, masks, visible, curtains = [], [], [], []
-    previous = None
+    previous = previous_camera = None
     for t, (camera, poses) in enumerate(zip(cameras, object_poses, strict=True)):
         for i, pose in enumerate(poses):
             r.set_pose(i, pose)
@@ -273,6 +273,9 @@ def _observe(
             previous = grid.fit_grid(points)
         elif previous is None:  # nothing seen yet: frame the objects where they are
             previous = grid.fit_grid(_camera_vertices(meshes, poses, camera))
+        else:  # nothing seen now: the previous grid, where it was in the world
+            previous = grid.carry_grid(previous, previous_camera, camera)
+        previous_camera = camera
         transforms[t] = previous
         occ = grid.voxelize_points(points, previous)
         if condition in ("object_hiding", "object_reveal"):

@@ -2,9 +2,12 @@
 
 Each view, given as a depth image + intrinsics (+ mask), a camera-frame point cloud or a ready
 grid, is voxelized in its own grid exactly as training did (DESIGN §3: the Varley fit on the
-view's points; a view with no object points keeps the previous view's grid), the model takes one
-streaming step, and the completion is the model's output for the latest view: occupancy
-probabilities (40, 40, 40) with the grid's ``grid_to_camera`` (the latest view's camera frame).
+view's points; a view with no object points keeps the previous view's grid, re-expressed in the
+new camera frame when both views came with camera poses: :func:`completion.grid.carry_grid`),
+the model takes one streaming step, and the completion is the model's output for the latest
+view: occupancy probabilities (40, 40, 40) with the grid's ``grid_to_camera`` (the latest view's
+camera frame). A stream counts as having seen the object only after a view with at least one
+observed voxel; before that it reports 0 occupied voxels and has no completion.
 
 The whole stream state (model memory, current grid, latest logits, counters) serialises to bytes
 and back exactly, so a service can persist a session after every view.
@@ -24,7 +27,8 @@ DEFAULT_THRESHOLD = 0.5
 
 
 class NoObjectError(ValueError):
-    """Raised when a completion is asked for before any view showed object points."""
+    """Raised when a completion is asked for before any view showed object points (a session
+    counts as seen only after a view with at least one observed voxel)."""
 
 
 @dataclass(frozen=True)
@@ -59,6 +63,7 @@ class CompletionStream:
             threshold if threshold is not None else getattr(model, "threshold", DEFAULT_THRESHOLD)
         )
         self.views = 0
+        self.seen = False  # a view with at least one observed voxel has come
         self.grid_to_camera: np.ndarray | None = None
         self.camera_to_world: np.ndarray | None = None
         self._state = model.init_state(1)
@@ -83,12 +88,16 @@ class CompletionStream:
             if intrinsics is None:
                 raise ValueError("a depth image needs its intrinsics")
             points = G.depth_to_points(depth, intrinsics, mask)
+        if camera_to_world is not None:
+            camera_to_world = np.asarray(camera_to_world, dtype=np.float64)
+            if camera_to_world.shape != (4, 4) or not np.isfinite(camera_to_world).all():
+                raise ValueError("camera_to_world must be a finite 4×4 matrix")
         if grid is None:
             pts = G.as_points(points)
             if len(pts):
                 transform = G.fit_grid(pts)
             else:
-                transform = self.grid_to_camera
+                transform = self._carried_grid(camera_to_world)
             occ = (
                 G.voxelize_points(pts, transform)
                 if transform is not None
@@ -96,11 +105,16 @@ class CompletionStream:
             )
         else:
             transform, occ = grid.grid_to_camera, grid.occupancy
-        if camera_to_world is not None:
-            pose = np.asarray(camera_to_world, dtype=np.float64)
-            if pose.shape != (4, 4) or not np.isfinite(pose).all():
-                raise ValueError("camera_to_world must be a finite 4×4 matrix")
         return self._step(occ, transform, camera_to_world)
+
+    def _carried_grid(self, camera_to_world: np.ndarray | None) -> np.ndarray | None:
+        """The grid of a view without object points: the previous one, moved into the new
+        camera frame when both poses are known (else left as it was)."""
+        if self.grid_to_camera is None:
+            return None
+        if camera_to_world is None or self.camera_to_world is None:
+            return self.grid_to_camera
+        return G.carry_grid(self.grid_to_camera, self.camera_to_world, camera_to_world)
 
     def _step(self, occ: np.ndarray, transform, camera_to_world) -> ViewResult:
         frame = torch.from_numpy(np.ascontiguousarray(occ, dtype=np.float32))[None]
@@ -109,17 +123,17 @@ class CompletionStream:
         self._logits = logits[0].float().numpy()
         index = self.views
         self.views += 1
+        observed = int(occ.sum())
+        self.seen = self.seen or observed > 0
         self.grid_to_camera = transform
-        self.camera_to_world = (
-            None if camera_to_world is None else np.asarray(camera_to_world, dtype=np.float64)
-        )
-        occupied = int((self._logits >= _logit(self.threshold)).sum())
-        return ViewResult(index, int(occ.sum()), occupied)
+        self.camera_to_world = camera_to_world
+        occupied = int((self._logits >= _logit(self.threshold)).sum()) if self.seen else 0
+        return ViewResult(index, observed, occupied)
 
     # ------------------------------------------------------------------ output
     def completion(self) -> Completion:
         """The latest view's completion; raises NoObjectError before any object points."""
-        if self._logits is None or self.grid_to_camera is None:
+        if not self.seen or self._logits is None or self.grid_to_camera is None:
             raise NoObjectError("no view with object points has been added yet")
         probs = (1.0 / (1.0 + np.exp(-self._logits.astype(np.float64)))).astype(np.float32)
         return Completion(probs, self.grid_to_camera.copy(), self.threshold, self.views)
@@ -133,6 +147,7 @@ class CompletionStream:
         arrays = {
             "model_state": np.frombuffer(state_to_bytes(self._state), dtype=np.uint8),
             "views": np.array(self.views),
+            "seen": np.array(self.seen),
             "threshold": np.array(self.threshold),
         }
         if self.grid_to_camera is not None:
@@ -155,6 +170,8 @@ class CompletionStream:
             stream.grid_to_camera = z["grid_to_camera"] if "grid_to_camera" in z else None
             stream.camera_to_world = z["camera_to_world"] if "camera_to_world" in z else None
             stream._logits = z["logits"] if "logits" in z else None
+            # states stored before "seen" existed: seen once a grid was fitted
+            stream.seen = bool(z["seen"]) if "seen" in z else stream.grid_to_camera is not None
         return stream
 
 

@@ -69,7 +69,7 @@ class Pipeline:
                 model=self.model_id,
                 state=stream.to_bytes(),
                 views=stream.views,
-                object_seen=stream.grid_to_camera is not None,
+                object_seen=stream.seen,
             )
             return session_id, result
         for _ in range(UPDATE_ATTEMPTS):
@@ -81,7 +81,7 @@ class Pipeline:
                     record,
                     state=stream.to_bytes(),
                     views=stream.views,
-                    object_seen=stream.grid_to_camera is not None,
+                    object_seen=stream.seen,
                 )
             except ConcurrentUpdate:
                 continue  # another process applied a view first: apply ours on top of it

@@ -449,6 +449,43 @@ def test_no_object_yet_is_409(client):
     assert client.get(f"/sessions/{sid}/occupancy").status_code == 200
 
 
+def test_all_zero_grid_session_is_409(client, scene):
+    """A grid view with no occupied voxel is no sighting: 0 occupied voxels, then 409."""
+    empty = VoxelGrid(np.zeros_like(scene.inputs[0]), scene.grid_to_camera[0])
+    r = client.post("/views", json={"grid": grid_field(empty)})
+    assert r.status_code == 200 and r.json()["occupied_voxels"] == 0, r.text
+    sid = r.json()["session_id"]
+    assert client.get(f"/sessions/{sid}").json()["object_seen"] is False
+    assert client.get("/grasp", params={"session_id": sid}).status_code == 409
+
+
+def test_occluded_view_after_a_camera_move_stays_on_the_object(client, scene):
+    """Camera moved 1 m, then a view with no object points: the grid stays where the object
+    is in the world (re-expressed in the new camera frame), so world poses stay on it."""
+    first = scene_views(scene)[0]
+    sid = new_session(client, first)
+    _, before = occupancy(client, sid)
+    moved = np.asarray(first["camera_pose"]) @ _translation([1.0, 0.0, 0.0])
+    r = client.post("/views", json={"points": [], "camera_pose": moved.tolist(),
+                                    "session_id": sid})
+    assert r.status_code == 200 and r.json()["observed_voxels"] == 0, r.text
+    _, after = occupancy(client, sid)
+    centre = np.array([19.5, 19.5, 19.5, 1.0])
+    world_before = np.asarray(first["camera_pose"]) @ np.asarray(before["grid_to_camera"]) @ centre
+    world_after = moved @ np.asarray(after["grid_to_camera"]) @ centre
+    np.testing.assert_allclose(world_after, world_before, atol=1e-9)
+    r = client.get("/grasp", params={"session_id": sid, "top_k": 1, "n_candidates": 8})
+    if r.status_code == 200 and r.json()["grasps"]:  # the tiny model may complete nothing
+        palm = np.asarray(r.json()["grasps"][0]["palm_pose_world"])
+        assert np.linalg.norm(palm[:3, 3] - world_before[:3]) < 0.3
+
+
+def _translation(offset) -> np.ndarray:
+    pose = np.eye(4)
+    pose[:3, 3] = offset
+    return pose
+
+
 def test_empty_completion_is_409(tmp_path):
     model = build_model(TINY)
     with torch.no_grad():
