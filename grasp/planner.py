@@ -11,6 +11,15 @@ Candidates (deterministic from ``seed``):
 Every candidate aims the palm's +z at the object's centre from outside its bounding sphere and
 approaches until contact. Results come back as values: a candidate that fails is a
 ``GraspResult`` with ``success=False`` and its reason, ranked after the successes.
+
+Ranking: force closure first, then the Ferrari–Canny epsilon of the L1 grasp wrench space (the
+largest disturbance wrench, in every direction, the grasp resists per unit of contact force),
+then the wrench-space volume. The top-k are distinct grasps: a grasp whose palm pose lies within
+1 cm and 10° of a better one is left out (:data:`DISTINCT_M`, :data:`DISTINCT_DEG`).
+
+A support plane (``support_plane=SupportPlane(...)``, world frame, n·x + d = 0 with n pointing up,
+the object on its upper side) removes the candidates that approach from below it and every grasp
+whose hand (any link's collision box) reaches below it.
 """
 
 from __future__ import annotations
@@ -25,11 +34,93 @@ import trimesh
 from grasp.autograsp import GraspResult, autograsp, with_quality
 from grasp.quality import contacts_wrenches, epsilon_upper_bound
 from grasp.sim import CollisionScene, check_mesh, fibonacci_directions
+from hands.barrett import JOINT_NAMES, HandKinematics
 
 #: Spreads (degrees) the random candidates draw from: parallel fingers, tripod, T, and between.
 DEFAULT_SPREADS_DEG: tuple[float, ...] = (0.0, 30.0, 60.0, 90.0)
 #: The palm starts this far outside the object's bounding sphere (metres).
 STANDOFF_M = 0.02
+#: Two grasps are the same grasp when their palm poses are closer than both of these.
+DISTINCT_M = 0.01
+DISTINCT_DEG = 10.0
+
+
+@dataclass(frozen=True)
+class SupportPlane:
+    """The surface the object rests on: points x with n·x + d = 0, n (unit) pointing up."""
+
+    normal: np.ndarray
+    offset: float
+
+    def __post_init__(self) -> None:
+        n = np.asarray(self.normal, dtype=np.float64).reshape(-1)
+        if n.shape != (3,) or not np.isfinite(n).all() or not np.isfinite(self.offset):
+            raise ValueError(f"a support plane needs a finite normal (3,) and offset, got {n}")
+        norm = float(np.linalg.norm(n))
+        if norm < 1e-9:
+            raise ValueError("the support plane's normal must not be zero")
+        object.__setattr__(self, "normal", n / norm)
+        object.__setattr__(self, "offset", float(self.offset) / norm)
+
+    @classmethod
+    def parse(cls, text: str) -> SupportPlane:
+        """From "nx,ny,nz,d" (the query and CLI form)."""
+        try:
+            values = [float(v) for v in text.split(",")]
+        except ValueError:
+            values = []
+        if len(values) != 4:
+            raise ValueError(f"a support plane is four numbers nx,ny,nz,d; got {text!r}")
+        return cls(np.array(values[:3]), values[3])
+
+    def height(self, points: np.ndarray) -> np.ndarray:
+        """Signed distance of (n, 3) points above the plane (metres)."""
+        return np.asarray(points, dtype=np.float64) @ self.normal + self.offset
+
+    def transformed(self, pose: np.ndarray) -> SupportPlane:
+        """The same plane in the frame whose pose (frame→here) is ``pose``."""
+        pose = np.asarray(pose, dtype=np.float64)
+        normal = pose[:3, :3].T @ self.normal
+        return SupportPlane(normal, self.offset + float(self.normal @ pose[:3, 3]))
+
+
+_KINEMATICS = HandKinematics()
+
+
+def hand_points(grasp: GraspResult) -> np.ndarray:
+    """(n, 3) corners of every collision primitive's box of the hand in ``grasp`` (world)."""
+    links = _KINEMATICS.link_poses(np.radians(np.asarray(grasp.joints_deg, dtype=np.float64)))
+    corners = [
+        grasp.palm_pose @ links[prim.link] @ np.c_[prim.corners(), np.ones(8)].T
+        for prim in _KINEMATICS.primitives
+    ]
+    return np.concatenate([c[:3].T for c in corners])
+
+
+def crosses(plane: SupportPlane, grasp: GraspResult) -> bool:
+    """Whether any part of the hand reaches below the support plane."""
+    return bool(plane.height(hand_points(grasp)).min() < 0.0)
+
+
+def distinct(grasps: Sequence[GraspResult], k: int | None = None) -> list[GraspResult]:
+    """The grasps in order, leaving out each one whose palm pose is within :data:`DISTINCT_M`
+    and :data:`DISTINCT_DEG` of one already kept; at most ``k``."""
+    kept: list[GraspResult] = []
+    cos_limit = math.cos(math.radians(DISTINCT_DEG))
+    for g in grasps:
+        if k is not None and len(kept) >= k:
+            break
+        same = False
+        for other in kept:
+            near = np.linalg.norm(g.palm_pose[:3, 3] - other.palm_pose[:3, 3]) < DISTINCT_M
+            # rotation angle between the two palm orientations: trace(R1ᵀR2) = 1 + 2 cos θ
+            cos = (np.trace(g.palm_pose[:3, :3].T @ other.palm_pose[:3, :3]) - 1.0) / 2.0
+            if near and cos > cos_limit:
+                same = True
+                break
+        if not same:
+            kept.append(g)
+    return kept
 
 
 @dataclass(frozen=True)
@@ -140,8 +231,10 @@ def plan(
     top_k: int | None = 10,
     spreads_deg: Sequence[float] = DEFAULT_SPREADS_DEG,
     max_travel: float | None = None,
+    support_plane: SupportPlane | None = None,
 ) -> list[GraspResult]:
-    """Plan BarrettHand grasps on ``mesh``: the best ``top_k`` of ``n_candidates`` autograsps.
+    """Plan BarrettHand grasps on ``mesh``: the best ``top_k`` distinct grasps of
+    ``n_candidates`` autograsps.
 
     Parameters
     ----------
@@ -152,29 +245,50 @@ def plan(
     seed : int
         Seed of the random candidates; the same seed gives the same plan.
     top_k : int or None
-        How many results to return (None: all), best first.
+        How many distinct grasps to return, best first (None: every candidate's result,
+        ranked, near-duplicates included).
     spreads_deg : sequence of float
         Spreads the random candidates choose from.
     max_travel : float or None
         Longest approach; default: through the whole bounding sphere.
+    support_plane : SupportPlane or None
+        In the mesh's frame. Candidates approaching from below it are not generated (the
+        ``n_candidates`` are drawn from the others) and grasps whose hand reaches below it are
+        dropped.
 
     Returns
     -------
-    list of GraspResult, sorted by (success, epsilon, volume) descending; ties keep candidate order.
+    list of GraspResult, sorted by (success, epsilon, volume) descending, ties in candidate
+    order; with ``top_k``, without near-duplicates (:func:`distinct`).
     """
     scene = mesh if isinstance(mesh, CollisionScene) else CollisionScene(check_mesh(mesh))
     if top_k is not None and top_k < 1:
         raise ValueError(f"top_k must be >= 1 or None, got {top_k}")
-    candidates = candidate_poses(
-        scene.mesh, n_candidates=n_candidates, seed=seed, spreads_deg=spreads_deg
-    )
+    if support_plane is None:
+        candidates = candidate_poses(
+            scene.mesh, n_candidates=n_candidates, seed=seed, spreads_deg=spreads_deg
+        )
+    else:  # draw more, keep the first n_candidates that do not come from below
+        pool = candidate_poses(
+            scene.mesh, n_candidates=2 * n_candidates + 24, seed=seed, spreads_deg=spreads_deg
+        )
+        candidates = [c for c in pool if c.palm_pose[:3, 2] @ support_plane.normal <= 1e-9]
+        candidates = candidates[:n_candidates]
     radius = float(np.linalg.norm(scene.mesh.extents))  # bounding-box diagonal
     travel = radius + 2.0 * STANDOFF_M if max_travel is None else max_travel
     results = [
         autograsp(scene, c.palm_pose, spread_deg=c.spread_deg, max_travel=travel, quality=False)
         for c in candidates
     ]
-    return rank(results, scene, top_k=top_k)
+    if support_plane is not None:
+        results = [r for r in results if not crosses(support_plane, r)]
+    if top_k is None:  # every candidate's result, ranked (for diagnostics): no dedup
+        return rank(results, scene)
+    # the first 4k of the ranking hold k distinct grasps unless many candidates coincide
+    best = distinct(rank(results, scene, top_k=4 * top_k), top_k)
+    if len(best) < top_k < len(results):
+        best = distinct(rank(results, scene), top_k)
+    return best
 
 
 def rank(
@@ -222,6 +336,15 @@ def read_mesh_argument(parser, path, *, scale: float = 1.0) -> trimesh.Trimesh:
     return mesh
 
 
+def _plane_argument(text: str) -> SupportPlane:
+    import argparse
+
+    try:
+        return SupportPlane.parse(text)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+
+
 def main(argv: Sequence[str] | None = None) -> None:
     """``python -m grasp.planner MESH``: plan, print the best grasps and the time taken."""
     import argparse
@@ -238,18 +361,40 @@ def main(argv: Sequence[str] | None = None) -> None:
     parser.add_argument("--seed", type=int, default=0, help="seed of the candidates")
     parser.add_argument("--top-k", type=int, default=5, help="grasps to print")
     parser.add_argument("--scale", type=float, default=1.0, help="multiply the mesh by this")
+    parser.add_argument(
+        "--support-plane",
+        type=_plane_argument,
+        default=None,
+        metavar="NX,NY,NZ,D",
+        help="the surface the object rests on, n·x + d = 0 in the mesh's frame, n up: no "
+        "approach from below, no hand below it",
+    )
     args = parser.parse_args(argv)
     mesh = read_mesh_argument(parser, args.mesh, scale=args.scale)
     wall, cpu = time.perf_counter(), time.process_time()
-    results = plan(mesh, n_candidates=args.candidates, seed=args.seed, top_k=args.top_k)
+    results = plan(
+        mesh,
+        n_candidates=args.candidates,
+        seed=args.seed,
+        top_k=args.top_k,
+        support_plane=args.support_plane,
+    )
     wall, cpu = time.perf_counter() - wall, time.process_time() - cpu
     print(
         f"{args.mesh.name}: {len(mesh.faces)} faces, {args.candidates} candidates in "
         f"{wall:.2f} s wall, {cpu:.2f} s CPU ({1000 * cpu / args.candidates:.1f} ms CPU each)"
     )
     for rank, r in enumerate(results, 1):
-        joints = " ".join(f"{v:6.1f}" for v in r.joints_deg)
-        print(f"{rank:2d}. eps {r.epsilon:6.3f} vol {r.volume:7.3f} [{joints}] {r.reason}")
+        position = ", ".join(f"{1000 * v:.0f}" for v in r.palm_pose[:3, 3])
+        approach = ", ".join(f"{v:+.2f}" for v in r.palm_pose[:3, 2])
+        fingers = ", ".join(f"{v:+.2f}" for v in r.palm_pose[:3, 1])
+        print(
+            f"{rank:2d}. eps {r.epsilon:6.3f}  volume {r.volume:7.3f}  palm at ({position}) mm, "
+            f"approach ({approach}), fingers along ({fingers})  {r.reason}"
+        )
+        joints = "  ".join(f"{name} {v:.1f}°" for name, v in zip(JOINT_NAMES, r.joints_deg,
+                                                                   strict=True))
+        print(f"    {joints}")
 
 
 if __name__ == "__main__":

@@ -29,16 +29,26 @@ PLANNER_NICENESS = 5
 
 
 def plan_grasps(
-    vertices: np.ndarray, faces: np.ndarray, *, n_candidates: int, seed: int, top_k: int
+    vertices: np.ndarray,
+    faces: np.ndarray,
+    *,
+    n_candidates: int,
+    seed: int,
+    top_k: int,
+    support_plane=None,
 ) -> tuple[list, float]:
-    """``grasp.planner.plan`` on the mesh (vertices (v, 3), faces (f, 3)); also its seconds."""
+    """``grasp.planner.plan`` on the mesh (vertices (v, 3), faces (f, 3)); also its seconds.
+
+    ``support_plane``: a ``grasp.planner.SupportPlane`` in the mesh's frame, or None."""
     import trimesh
 
     from grasp.planner import plan
 
     mesh = trimesh.Trimesh(vertices, faces, process=False)
     start = time.perf_counter()
-    results = plan(mesh, n_candidates=n_candidates, seed=seed, top_k=top_k)
+    results = plan(
+        mesh, n_candidates=n_candidates, seed=seed, top_k=top_k, support_plane=support_plane
+    )
     return results, time.perf_counter() - start
 
 
@@ -65,10 +75,23 @@ class Planner:
         return self._pool
 
     async def plan(
-        self, vertices: np.ndarray, faces: np.ndarray, *, n_candidates: int, seed: int, top_k: int
+        self,
+        vertices: np.ndarray,
+        faces: np.ndarray,
+        *,
+        n_candidates: int,
+        seed: int,
+        top_k: int,
+        support_plane=None,
     ) -> tuple[list, float]:
         call = partial(
-            plan_grasps, vertices, faces, n_candidates=n_candidates, seed=seed, top_k=top_k
+            plan_grasps,
+            vertices,
+            faces,
+            n_candidates=n_candidates,
+            seed=seed,
+            top_k=top_k,
+            support_plane=support_plane,
         )
         if not self.processes:
             return await anyio.to_thread.run_sync(call, limiter=self._limiter)

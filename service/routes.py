@@ -15,6 +15,7 @@ import numpy as np
 from fastapi import APIRouter, Depends, Path, Query, Response, status
 
 from completion.mesh import MeshFormat, export_mesh
+from grasp.planner import SupportPlane
 from hands.barrett import JOINT_NAMES
 from service.deps import ServicesDep, require_token
 from service.inputs import InputError, decode_view
@@ -87,6 +88,16 @@ async def get_grasp(
     n_candidates: Annotated[
         int | None, Query(ge=1, description="candidates tried (default GRASP_N_CANDIDATES)")
     ] = None,
+    support_plane: Annotated[
+        str | None,
+        Query(
+            max_length=200,
+            description="the surface the object rests on, 'nx,ny,nz,d' in the world frame "
+            "(n·x + d = 0, n pointing up): no approach from below it, no hand below it. Needs "
+            "camera poses on the views.",
+            examples=["0,0,1,0"],
+        ),
+    ] = None,
 ) -> GraspsOut:
     """Complete the session's current state, mesh it and plan BarrettHand grasps."""
     start = time.perf_counter()
@@ -96,9 +107,24 @@ async def get_grasp(
         raise InputError(
             ("query", "n_candidates"), f"n_candidates must be at most {s.max_candidates}, got {n}"
         )
+    plane = None
+    if support_plane is not None:
+        try:
+            plane = SupportPlane.parse(support_plane)
+        except ValueError as exc:
+            raise InputError(("query", "support_plane"), str(exc)) from None
     snapshot, mesh, timing = await services.infer(services.pipeline.grasp_mesh, session_id)
+    if plane is not None:
+        if snapshot.camera_to_world is None:
+            raise InputError(
+                ("query", "support_plane"),
+                "support_plane is in the world frame: it needs the views' camera_pose "
+                "(the latest view came without one)",
+            )
+        plane = plane.transformed(snapshot.camera_to_world)  # into the latest camera frame
     results, seconds = await services.planner.plan(
-        mesh.vertices, mesh.faces, n_candidates=n, seed=s.plan_seed, top_k=top_k
+        mesh.vertices, mesh.faces, n_candidates=n, seed=s.plan_seed, top_k=top_k,
+        support_plane=plane,
     )
     total = (time.perf_counter() - start) * 1e3
     timing["planning"] = seconds * 1e3

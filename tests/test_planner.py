@@ -9,8 +9,14 @@ from grasp_scenes import box
 from scipy.spatial.transform import Rotation
 
 from grasp.planner import (
+    DISTINCT_DEG,
+    DISTINCT_M,
     STANDOFF_M,
+    SupportPlane,
     candidate_poses,
+    crosses,
+    distinct,
+    hand_points,
     plan,
     principal_axes,
     rank_key,
@@ -87,10 +93,10 @@ def test_plan_is_ranked_by_success_epsilon_volume(brick_plan):
     assert all(r.epsilon <= best.epsilon for r in brick_plan)
 
 
-def test_plan_is_deterministic_and_top_k_is_a_prefix(brick, brick_plan):
+def test_plan_is_deterministic_and_top_k_are_the_best_distinct(brick, brick_plan):
     again = plan(CollisionScene(brick), n_candidates=32, seed=0, top_k=5)
     assert len(again) == 5
-    for a, b in zip(again, brick_plan[:5], strict=True):
+    for a, b in zip(again, distinct(brick_plan)[:5], strict=True):
         assert a.joints_deg == b.joints_deg
         np.testing.assert_array_equal(a.palm_pose, b.palm_pose)
         assert (a.epsilon, a.volume) == (b.epsilon, b.volume)
@@ -115,3 +121,50 @@ def test_bad_input_raises(brick):
         candidate_poses(brick, spreads_deg=(0.0, 200.0))
     with pytest.raises(ValueError, match="Trimesh"):
         plan("brick.obj")  # type: ignore[arg-type]
+
+
+def _angle_deg(a: np.ndarray, b: np.ndarray) -> float:
+    cos = (np.trace(a[:3, :3].T @ b[:3, :3]) - 1.0) / 2.0
+    return float(np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))))
+
+
+def test_top_k_are_distinct_grasps():
+    """A cube's symmetric candidates land on the same palm poses; top-k never repeats one."""
+    cube = trimesh.creation.box(extents=(0.06, 0.06, 0.12))
+    top = plan(cube, n_candidates=64, seed=0, top_k=6)
+    assert len(top) == 6
+    for i, a in enumerate(top):
+        for b in top[:i]:
+            far = np.linalg.norm(a.palm_pose[:3, 3] - b.palm_pose[:3, 3]) >= DISTINCT_M
+            assert far or _angle_deg(a.palm_pose, b.palm_pose) >= DISTINCT_DEG
+    everything = plan(cube, n_candidates=64, seed=0, top_k=None)
+    assert len(distinct(everything)) < len(everything)  # there were duplicates to leave out
+
+
+@pytest.mark.parametrize("normal", [(0.0, 0.0, 1.0), (0.3, -0.2, 1.0)])
+def test_support_plane_no_approach_from_below_no_hand_below(brick, normal):
+    """The brick rests on a plane through its lowest corner: no returned grasp comes from
+    below, and no link of the hand reaches below the plane."""
+    n = np.asarray(normal) / np.linalg.norm(normal)
+    plane = SupportPlane(n, -float((brick.vertices @ n).min()))
+    assert plane.height(brick.vertices).min() == pytest.approx(0.0, abs=1e-12)
+    grasps = plan(brick, n_candidates=48, seed=0, top_k=10, support_plane=plane)
+    assert grasps and grasps[0].success
+    for g in grasps:
+        assert g.palm_pose[:3, 2] @ plane.normal <= 1e-9  # approach along or down the plane
+        assert plane.height(hand_points(g)).min() >= 0.0
+        assert not crosses(plane, g)
+    free = plan(brick, n_candidates=48, seed=0, top_k=10)
+    assert any(g.palm_pose[:3, 2] @ plane.normal > 0.1 or crosses(plane, g) for g in free)
+
+
+def test_support_plane_parsing_and_frames():
+    plane = SupportPlane.parse("0,0,2,-1")  # z = 0.5, normalised
+    np.testing.assert_allclose(plane.normal, [0, 0, 1])
+    assert plane.offset == pytest.approx(-0.5)
+    lifted = np.eye(4)
+    lifted[:3, 3] = [0.0, 0.0, 0.2]  # a frame 0.2 m above this one
+    assert plane.transformed(lifted).height(np.zeros((1, 3)))[0] == pytest.approx(-0.3)
+    for bad in ("0,0,1", "a,b,c,d", "0,0,0,1"):
+        with pytest.raises(ValueError):
+            SupportPlane.parse(bad)

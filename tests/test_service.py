@@ -265,6 +265,45 @@ def check_grasp(g: dict) -> None:
     assert g["contacts"] and all(len(c["point"]) == 3 for c in g["contacts"])
 
 
+def test_grasp_on_a_support_plane(client, scene):
+    """The table under the object (world z of its lowest point): no grasp from below it, no
+    hand link below it, in the world frame the plane was given in."""
+    from grasp.autograsp import GraspResult, HandDofs, HandJoints
+    from grasp.planner import SupportPlane, hand_points
+
+    bodies = scene_views(scene)[:2]
+    sid = new_session(client, bodies[0])
+    client.post("/views", json=bodies[1] | {"session_id": sid})
+    _, occ = occupancy(client, sid)
+    camera = np.asarray(bodies[1]["camera_pose"])
+    corners = np.array([[i, j, k, 1.0] for i in (0, 40) for j in (0, 40) for k in (0, 40)])
+    lowest = float((camera @ np.asarray(occ["grid_to_camera"]) @ corners.T)[2].min())
+    plane = SupportPlane(np.array([0.0, 0.0, 1.0]), -lowest)
+    r = client.get("/grasp", params={"session_id": sid, "top_k": 3, "n_candidates": 16,
+                                     "support_plane": f"0,0,1,{-lowest}"})
+    assert r.status_code == 200, r.text
+    assert r.json()["grasps"], r.json()["reason"]
+    for g in r.json()["grasps"]:
+        world = np.asarray(g["palm_pose_world"])
+        assert world[:3, 2] @ plane.normal <= 1e-6  # approach along or down the plane
+        hand = GraspResult(True, "", world, HandJoints(**g["joints_deg"]),
+                           HandDofs(*g["dofs_deg"]))
+        assert plane.height(hand_points(hand)).min() >= -1e-6
+
+
+@pytest.mark.parametrize("value", ["0,0,1", "up", "0,0,0,1"])
+def test_bad_support_plane_is_422(client, value):
+    sid = new_session(client)
+    r = client.get("/grasp", params={"session_id": sid, "support_plane": value})
+    assert r.status_code == 422 and "support_plane" in r.text
+
+
+def test_support_plane_needs_camera_poses(client):
+    sid = new_session(client)  # points without a camera_pose
+    r = client.get("/grasp", params={"session_id": sid, "support_plane": "0,0,1,0"})
+    assert r.status_code == 422 and "camera_pose" in r.text, r.text
+
+
 def test_grasp_without_camera_pose_has_no_world_pose(client, scene):
     body = scene_views(scene, with_pose=False)[0]
     sid = new_session(client, body)
