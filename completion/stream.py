@@ -68,6 +68,7 @@ class CompletionStream:
         self.camera_to_world: np.ndarray | None = None
         self._state = model.init_state(1)
         self._logits: np.ndarray | None = None
+        self._observed: np.ndarray | None = None  # the latest view's input grid (bool)
 
     # ------------------------------------------------------------------ input
     def add_view(
@@ -125,6 +126,7 @@ class CompletionStream:
         self.views += 1
         observed = int(occ.sum())
         self.seen = self.seen or observed > 0
+        self._observed = np.asarray(occ, dtype=bool)
         self.grid_to_camera = transform
         self.camera_to_world = camera_to_world
         occupied = int((self._logits >= _logit(self.threshold)).sum()) if self.seen else 0
@@ -137,6 +139,13 @@ class CompletionStream:
             raise NoObjectError("no view with object points has been added yet")
         probs = (1.0 / (1.0 + np.exp(-self._logits.astype(np.float64)))).astype(np.float32)
         return Completion(probs, self.grid_to_camera.copy(), self.threshold, self.views)
+
+    def observed_points(self) -> np.ndarray:
+        """(n, 3) centres of the latest view's observed voxels, in its camera frame (the frame
+        of :meth:`completion`); empty before any view."""
+        if self._observed is None or self.grid_to_camera is None:
+            return np.zeros((0, 3))
+        return G.VoxelGrid(self._observed, self.grid_to_camera).points()
 
     # ------------------------------------------------------------------ persistence
     def to_bytes(self) -> bytes:
@@ -156,6 +165,8 @@ class CompletionStream:
             arrays["camera_to_world"] = self.camera_to_world
         if self._logits is not None:
             arrays["logits"] = self._logits
+        if self._observed is not None:
+            arrays["observed"] = np.packbits(self._observed.reshape(-1))
         np.savez(buf, **arrays)
         return buf.getvalue()
 
@@ -170,6 +181,8 @@ class CompletionStream:
             stream.grid_to_camera = z["grid_to_camera"] if "grid_to_camera" in z else None
             stream.camera_to_world = z["camera_to_world"] if "camera_to_world" in z else None
             stream._logits = z["logits"] if "logits" in z else None
+            if "observed" in z:
+                stream._observed = G.VoxelGrid.unpack(z["observed"].tobytes())
             # states stored before "seen" existed: seen once a grid was fitted
             stream.seen = bool(z["seen"]) if "seen" in z else stream.grid_to_camera is not None
         return stream

@@ -87,6 +87,17 @@ class SupportPlane:
 _KINEMATICS = HandKinematics()
 
 
+def hand_primitives(grasp: GraspResult) -> list[tuple[str, str, tuple[float, ...], np.ndarray]]:
+    """The hand of ``grasp`` as collision primitives placed by the hand's kinematics:
+    (link, "box" or "cylinder", size, (4, 4) primitive→world pose) each. Box sizes are full
+    extents; a cylinder is (radius, length) along its local z."""
+    links = _KINEMATICS.link_poses(np.radians(np.asarray(grasp.joints_deg, dtype=np.float64)))
+    return [
+        (prim.link, prim.kind, tuple(prim.size), grasp.palm_pose @ links[prim.link] @ prim.pose)
+        for prim in _KINEMATICS.primitives
+    ]
+
+
 def hand_points(grasp: GraspResult) -> np.ndarray:
     """(n, 3) corners of every collision primitive's box of the hand in ``grasp`` (world)."""
     links = _KINEMATICS.link_poses(np.radians(np.asarray(grasp.joints_deg, dtype=np.float64)))

@@ -21,6 +21,7 @@ from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from completion.mesh import EmptyMeshError
 from completion.stream import NoObjectError
+from service import inspector  # its data routes join `router` on import
 from service.deps import Services
 from service.inputs import InputError
 from service.pipeline import ModelMismatch, Pipeline
@@ -53,6 +54,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.state.settings = settings
     app.include_router(router)
     app.include_router(health_router)
+    inspector.mount(app)
     app.add_middleware(BodyLimit, max_bytes=settings.max_body_bytes)
     for exc_type, code in _STATUS.items():
         app.add_exception_handler(exc_type, _message_handler(code))

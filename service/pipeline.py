@@ -105,6 +105,14 @@ class Pipeline:
         stream = self._stream(record)
         return Snapshot(record, stream.completion(), stream.camera_to_world)
 
+    def observed(self, session_id: str) -> tuple[Snapshot, np.ndarray]:
+        """The latest completion's snapshot and the latest view's observed voxel centres (n, 3)
+        in the same camera frame; raises NoObjectError before any view with object points."""
+        record = self.store.get(session_id)
+        stream = self._stream(record)
+        snap = Snapshot(record, stream.completion(), stream.camera_to_world)
+        return snap, stream.observed_points()
+
     def occupancy(self, session_id: str) -> tuple[Snapshot, VoxelGrid]:
         snap = self.snapshot(session_id)
         return snap, snap.completion.voxel_grid()

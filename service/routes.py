@@ -15,7 +15,7 @@ import numpy as np
 from fastapi import APIRouter, Depends, Path, Query, Response, status
 
 from completion.mesh import MeshFormat, export_mesh
-from grasp.planner import SupportPlane
+from grasp.planner import SupportPlane, hand_primitives
 from hands.barrett import JOINT_NAMES
 from service.deps import ServicesDep, require_token
 from service.inputs import InputError, decode_view
@@ -27,6 +27,7 @@ from service.schemas import (
     GraspsOut,
     HealthOut,
     OccupancyOut,
+    PrimitiveOut,
     SessionOut,
     ViewIn,
     ViewOut,
@@ -80,26 +81,39 @@ async def post_view(body: ViewIn, services: ServicesDep) -> ViewOut:
     )
 
 
+TopK = Annotated[int, Query(ge=1, le=64, description="grasps returned, best first")]
+NCandidates = Annotated[
+    int | None, Query(ge=1, description="candidates tried (default GRASP_N_CANDIDATES)")
+]
+SupportPlaneQuery = Annotated[
+    str | None,
+    Query(
+        max_length=200,
+        description="the surface the object rests on, 'nx,ny,nz,d' in the world frame "
+        "(n·x + d = 0, n pointing up): no approach from below it, no hand below it. Needs "
+        "camera poses on the views.",
+        examples=["0,0,1,0"],
+    ),
+]
+
+
 @router.get("/grasp", response_model=GraspsOut, responses=_errors(404, 409))
 async def get_grasp(
     services: ServicesDep,
     session_id: Annotated[str, Query(min_length=1, max_length=128)],
-    top_k: Annotated[int, Query(ge=1, le=64, description="grasps returned, best first")] = 1,
-    n_candidates: Annotated[
-        int | None, Query(ge=1, description="candidates tried (default GRASP_N_CANDIDATES)")
-    ] = None,
-    support_plane: Annotated[
-        str | None,
-        Query(
-            max_length=200,
-            description="the surface the object rests on, 'nx,ny,nz,d' in the world frame "
-            "(n·x + d = 0, n pointing up): no approach from below it, no hand below it. Needs "
-            "camera poses on the views.",
-            examples=["0,0,1,0"],
-        ),
-    ] = None,
+    top_k: TopK = 1,
+    n_candidates: NCandidates = None,
+    support_plane: SupportPlaneQuery = None,
 ) -> GraspsOut:
     """Complete the session's current state, mesh it and plan BarrettHand grasps."""
+    out, _ = await plan_session(services, session_id, top_k, n_candidates, support_plane)
+    return out
+
+
+async def plan_session(
+    services, session_id: str, top_k: int, n_candidates: int | None, support_plane: str | None
+):
+    """What ``GET /grasp`` answers, and the completion mesh it planned on (camera frame)."""
     start = time.perf_counter()
     s = services.settings
     n = s.n_candidates if n_candidates is None else n_candidates
@@ -129,7 +143,7 @@ async def get_grasp(
     total = (time.perf_counter() - start) * 1e3
     timing["planning"] = seconds * 1e3
     timing |= {"waiting": max(total - sum(timing.values()), 0.0), "total": total}
-    return _grasps_out(snapshot, results, timing)
+    return _grasps_out(snapshot, results, timing, plane), mesh
 
 
 @router.get("/sessions/{session_id}", response_model=SessionOut, responses=_errors(404))
@@ -205,14 +219,19 @@ async def healthz(services: ServicesDep) -> HealthOut:
     return HealthOut(model=services.pipeline.model_name, sessions=sessions)
 
 
-def _grasps_out(snapshot: Snapshot, results: list, timing_ms: dict[str, float]) -> GraspsOut:
+def _grasps_out(
+    snapshot: Snapshot, results: list, timing_ms: dict[str, float], plane: SupportPlane | None
+) -> GraspsOut:
     held = [r for r in results if r.success]
     reasons = sorted({r.reason for r in results if not r.success and r.reason})
+    camera = snapshot.camera_to_world
     return GraspsOut(
         session_id=snapshot.record.id,
         views=snapshot.record.views,
-        grasps=[_grasp_out(r, snapshot.camera_to_world) for r in held],
+        grasps=[_grasp_out(r, camera) for r in held],
         reason=None if held else ("; ".join(reasons) or "no grasp candidate"),
+        camera_pose=None if camera is None else np.asarray(camera, dtype=float).tolist(),
+        support_plane=None if plane is None else [*plane.normal.tolist(), plane.offset],
         timing_ms={k: round(v, 3) for k, v in timing_ms.items()},
     )
 
@@ -233,5 +252,9 @@ def _grasp_out(result, camera_to_world: np.ndarray | None) -> GraspOut:
                 normal=np.asarray(c.normal, dtype=float).tolist(),
             )
             for c in result.contacts
+        ],
+        hand=[
+            PrimitiveOut(link=link, kind=kind, size=list(size), pose=pose.tolist())
+            for link, kind, size, pose in hand_primitives(result)
         ],
     )

@@ -102,6 +102,13 @@ class ContactOut(BaseModel):
     normal: list[float] = Field(description="unit, camera frame")
 
 
+class PrimitiveOut(BaseModel):
+    link: str = Field(description="palm, f1_knuckle, f1_prox, f1_dist, …")
+    kind: Literal["box", "cylinder"]
+    size: list[float] = Field(description="box: full extents; cylinder: radius, length (z)")
+    pose: list[list[float]] = Field(description="4×4 primitive→camera (latest view)")
+
+
 class GraspOut(BaseModel):
     palm_pose: list[list[float]] = Field(description="4×4 palm→camera (latest view)")
     palm_pose_world: list[list[float]] | None = Field(
@@ -115,6 +122,9 @@ class GraspOut(BaseModel):
     epsilon: float
     volume: float
     contacts: list[ContactOut]
+    hand: list[PrimitiveOut] = Field(
+        description="the hand at this grasp as collision primitives placed by its kinematics"
+    )
 
 
 class GraspsOut(BaseModel):
@@ -122,8 +132,24 @@ class GraspsOut(BaseModel):
     views: int
     grasps: list[GraspOut] = Field(description="best first; empty when no candidate held")
     reason: str | None = Field(None, description="why no grasp was found, when grasps is empty")
+    camera_pose: list[list[float]] | None = Field(
+        None, description="4×4 camera→world of the latest view, when it came with one"
+    )
+    support_plane: list[float] | None = Field(
+        None,
+        description="the support plane the grasps respect, [nx, ny, nz, d] in the latest "
+        "camera frame (n·x + d = 0, n up), when one was given",
+    )
     timing_ms: dict[str, float] = Field(
         description="load, completion, mesh, planning; waiting (for a free worker); total"
+    )
+
+
+class ObservedOut(BaseModel):
+    session_id: str
+    views: int
+    points: list[list[float]] = Field(
+        description="centres of the latest view's observed voxels, its camera frame, metres"
     )
 
 

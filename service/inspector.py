@@ -1,0 +1,138 @@
+"""The grasp inspector: a 3-D page served by the service, and the same scene as one GLB file.
+
+``GET /sessions/{id}/view`` serves a static page (``service/static/inspector/``; three.js is
+vendored there with its licence, so it works with no internet). The page holds no data: it reads
+``GET /grasp``, ``GET /sessions/{id}/mesh?format=obj`` and ``GET /sessions/{id}/observed``, the
+API every client uses, and draws the latest view's observed points, the completion
+(semi-transparent), the BarrettHand at each of the top-k grasps (its links placed by the hand's
+kinematics, :func:`grasp.planner.hand_primitives`) and the support plane when one was given.
+The page and its assets need no token (they carry no data); its API calls send the token given
+in the page's URL fragment (``#token=…``), which browsers never send to the server.
+
+``GET /sessions/{id}/scene.glb`` writes that scene for Blender or MeshLab: nodes ``completion``,
+``observed`` (points), ``grasp_1`` … ``grasp_k`` (one hand each) and ``support_plane``.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path as FilePath
+
+import numpy as np
+import trimesh
+from fastapi import APIRouter, Response
+from fastapi.responses import FileResponse
+from fastapi.staticfiles import StaticFiles
+
+from service.deps import ServicesDep
+from service.routes import (
+    NCandidates,
+    PathId,
+    SupportPlaneQuery,
+    TopK,
+    _errors,
+    plan_session,
+    router,
+)
+from service.schemas import GraspsOut, ObservedOut
+
+STATIC = FilePath(__file__).resolve().parent / "static" / "inspector"
+#: Side of the square drawn for the support plane, in units of the completion's size.
+PLANE_SCALE = 3.0
+
+page_router = APIRouter()
+
+
+def mount(app) -> None:
+    """Add the page, its assets and its data routes to ``app``."""
+    app.include_router(page_router)
+    app.mount("/static/inspector", StaticFiles(directory=STATIC), name="inspector")
+
+
+@page_router.get(
+    "/sessions/{session_id}/view",
+    response_class=FileResponse,
+    responses={200: {"content": {"text/html": {}}, "description": "the inspector page"}},
+)
+async def view_page(session_id: PathId) -> FileResponse:
+    """The inspector page of a session (open it in a browser; ?top_k=…&support_plane=…)."""
+    return FileResponse(STATIC / "index.html", media_type="text/html")
+
+
+@router.get(
+    "/sessions/{session_id}/observed", response_model=ObservedOut, responses=_errors(404, 409)
+)
+async def get_observed(session_id: PathId, services: ServicesDep) -> ObservedOut:
+    """The latest view's observed voxel centres, in its camera frame (the completion's)."""
+    snapshot, points = await services.infer(services.pipeline.observed, session_id)
+    return ObservedOut(
+        session_id=session_id, views=snapshot.record.views, points=np.round(points, 6).tolist()
+    )
+
+
+@router.get(
+    "/sessions/{session_id}/scene.glb",
+    response_class=Response,
+    responses={
+        200: {"content": {"model/gltf-binary": {}}, "description": "the scene as GLB"},
+        **_errors(404, 409),
+    },
+)
+async def get_scene(
+    session_id: PathId,
+    services: ServicesDep,
+    top_k: TopK = 5,
+    n_candidates: NCandidates = None,
+    support_plane: SupportPlaneQuery = None,
+) -> Response:
+    """The inspector's scene as one GLB file (latest camera frame, metres)."""
+    plan, mesh = await plan_session(services, session_id, top_k, n_candidates, support_plane)
+    _, points = await services.infer(services.pipeline.observed, session_id)
+    data = await services.infer(scene_glb, plan, mesh, points)
+    return Response(
+        data,
+        media_type="model/gltf-binary",
+        headers={"Content-Disposition": f'attachment; filename="{session_id}.glb"'},
+    )
+
+
+def hand_mesh(grasp) -> trimesh.Trimesh:
+    """One grasp's hand (``GraspOut``) as a single mesh of its placed primitives."""
+    parts = []
+    for prim in grasp.hand:
+        pose = np.asarray(prim.pose, dtype=np.float64)
+        if prim.kind == "box":
+            parts.append(trimesh.creation.box(extents=prim.size, transform=pose))
+        else:
+            radius, length = prim.size
+            parts.append(trimesh.creation.cylinder(radius, length, sections=24, transform=pose))
+    return trimesh.util.concatenate(parts)
+
+
+def plane_mesh(plane: list[float], centre: np.ndarray, side: float) -> trimesh.Trimesh:
+    """A thin square of the plane [nx, ny, nz, d] around the point nearest ``centre``."""
+    normal, offset = np.asarray(plane[:3], dtype=np.float64), float(plane[3])
+    point = centre - (normal @ centre + offset) * normal
+    pose = trimesh.geometry.align_vectors([0.0, 0.0, 1.0], normal)
+    pose[:3, 3] = point
+    return trimesh.creation.box(extents=[side, side, 1e-3], transform=pose)
+
+
+def scene_glb(plan: GraspsOut, mesh: trimesh.Trimesh, points: np.ndarray) -> bytes:
+    """The scene of :func:`get_scene` as GLB bytes."""
+    scene = trimesh.Scene()
+    completion = mesh.copy()
+    completion.visual.face_colors = [224, 138, 60, 115]  # semi-transparent orange
+    scene.add_geometry(completion, geom_name="completion", node_name="completion")
+    if len(points):
+        cloud = trimesh.PointCloud(points, colors=np.tile([31, 95, 214, 255], (len(points), 1)))
+        scene.add_geometry(cloud, geom_name="observed", node_name="observed")
+    for i, grasp in enumerate(plan.grasps, 1):
+        hand = hand_mesh(grasp)
+        hand.visual.face_colors = [85, 90, 102, 255]
+        scene.add_geometry(hand, geom_name=f"grasp_{i}", node_name=f"grasp_{i}")
+    if plan.support_plane is not None:
+        side = PLANE_SCALE * float(np.linalg.norm(mesh.extents))
+        ground = plane_mesh(plan.support_plane, np.asarray(mesh.bounds.mean(axis=0)), side)
+        ground.visual.face_colors = [90, 160, 90, 90]
+        scene.add_geometry(ground, geom_name="support_plane", node_name="support_plane")
+    return scene.export(file_type="glb")

@@ -1,0 +1,193 @@
+// The grasp inspector: draws what the API returns for one session, nothing else.
+//   GET /grasp?session_id=…   grasps (palm pose, joints, ε, volume, the hand's primitives placed
+//                             by its kinematics), the camera pose and the support plane
+//   GET /sessions/{id}/mesh?format=obj   the completion mesh
+//   GET /sessions/{id}/observed          the latest view's observed points
+// Everything is in the latest view's camera frame (OpenCV: x right, y down, z forward); the
+// root group turns it into three.js's y-up convention.
+import * as THREE from 'three';
+import { OrbitControls } from './vendor/three/OrbitControls.js';
+import { OBJLoader } from './vendor/three/OBJLoader.js';
+
+const statusEl = document.getElementById('status');
+const listEl = document.getElementById('grasps');
+
+function fail(message) {
+  statusEl.dataset.state = 'error';
+  statusEl.textContent = String(message);
+}
+window.addEventListener('error', (e) => fail(e.message));
+window.addEventListener('unhandledrejection', (e) => fail(e.reason));
+
+const parts = location.pathname.split('/');
+const sessionId = decodeURIComponent(parts[parts.length - 2]);
+const query = new URLSearchParams(location.search);
+const token = new URLSearchParams(location.hash.slice(1)).get('token');
+const headers = token ? { Authorization: `Bearer ${token}` } : {};
+document.getElementById('session').textContent = `session ${sessionId}`;
+
+async function api(path) {
+  const response = await fetch(path, { headers });
+  if (!response.ok) throw new Error(`${path}: HTTP ${response.status} ${await response.text()}`);
+  return response;
+}
+
+function matrix(rows) {
+  const m = new THREE.Matrix4();
+  m.set(...rows.flat());
+  return m;
+}
+
+function place(object, rows) {
+  object.matrixAutoUpdate = false;
+  object.matrix.copy(matrix(rows));
+  return object;
+}
+
+const HAND = { color: 0x555a66, roughness: 0.6, metalness: 0.2 };
+
+function handGroup(grasp) {
+  const group = new THREE.Group();
+  for (const prim of grasp.hand) {
+    let geometry;
+    if (prim.kind === 'box') {
+      geometry = new THREE.BoxGeometry(...prim.size);
+    } else {
+      const [radius, length] = prim.size;
+      geometry = new THREE.CylinderGeometry(radius, radius, length, 24);
+      geometry.rotateX(Math.PI / 2); // three.js cylinders run along y, ours along z
+    }
+    const material = new THREE.MeshStandardMaterial({ ...HAND, transparent: true });
+    group.add(place(new THREE.Mesh(geometry, material), prim.pose));
+  }
+  return group;
+}
+
+function planeMesh([nx, ny, nz, d], centre, size) {
+  const normal = new THREE.Vector3(nx, ny, nz).normalize();
+  const geometry = new THREE.PlaneGeometry(size, size);
+  const material = new THREE.MeshStandardMaterial({
+    color: 0x5aa05a, transparent: true, opacity: 0.35, side: THREE.DoubleSide, depthWrite: false,
+  });
+  const plane = new THREE.Mesh(geometry, material);
+  plane.quaternion.setFromUnitVectors(new THREE.Vector3(0, 0, 1), normal);
+  // the point of the plane nearest the object's centre
+  plane.position.copy(centre).addScaledVector(normal, -(normal.dot(centre) + d));
+  return plane;
+}
+
+function describe(grasp, index) {
+  const joints = Object.entries(grasp.joints_deg)
+    .map(([name, value]) => `${name} ${value.toFixed(1)}°`).join(', ');
+  const item = document.createElement('li');
+  item.innerHTML = `<b>grasp ${index + 1}</b>: ε ${grasp.epsilon.toFixed(3)}, ` +
+    `volume ${grasp.volume.toFixed(3)}<div class="joints"></div>`;
+  item.querySelector('.joints').textContent = joints;
+  return item;
+}
+
+async function main() {
+  const grasp = new URLSearchParams({ session_id: sessionId });
+  for (const key of ['top_k', 'n_candidates', 'support_plane']) {
+    if (query.has(key)) grasp.set(key, query.get(key));
+  }
+  if (!grasp.has('top_k')) grasp.set('top_k', '5');
+  const id = encodeURIComponent(sessionId);
+  const [plan, obj, observed] = await Promise.all([
+    api(`/grasp?${grasp}`).then((r) => r.json()),
+    api(`/sessions/${id}/mesh?format=obj`).then((r) => r.text()),
+    api(`/sessions/${id}/observed`).then((r) => r.json()),
+  ]);
+
+  const viewport = document.getElementById('viewport');
+  const renderer = new THREE.WebGLRenderer({ antialias: true, preserveDrawingBuffer: true });
+  renderer.setPixelRatio(window.devicePixelRatio);
+  renderer.setSize(viewport.clientWidth, viewport.clientHeight);
+  viewport.appendChild(renderer.domElement);
+  const scene = new THREE.Scene();
+  scene.background = new THREE.Color(0xf4f4f2);
+  scene.add(new THREE.AmbientLight(0xffffff, 0.6));
+  const sun = new THREE.DirectionalLight(0xffffff, 2.0);
+  sun.position.set(1, 2, 1.5);
+  scene.add(sun);
+  const root = new THREE.Group(); // camera frame (y down, z forward) -> three.js (y up)
+  root.rotation.x = Math.PI;
+  scene.add(root);
+
+  const completion = new OBJLoader().parse(obj);
+  completion.traverse((child) => {
+    if (child.isMesh) {
+      child.geometry.computeVertexNormals();
+      child.material = new THREE.MeshStandardMaterial({
+        color: 0xe08a3c, transparent: true, opacity: 0.45, depthWrite: false,
+        side: THREE.DoubleSide,
+      });
+    }
+  });
+  root.add(completion);
+
+  const points = new THREE.BufferGeometry();
+  points.setAttribute('position', new THREE.Float32BufferAttribute(observed.points.flat(), 3));
+  root.add(new THREE.Points(points, new THREE.PointsMaterial({ color: 0x1f5fd6, size: 0.004 })));
+
+  const box = new THREE.Box3().setFromObject(completion);
+  const centre = box.getCenter(new THREE.Vector3()); // camera frame
+  const size = box.getSize(new THREE.Vector3()).length();
+  const hands = plan.grasps.map((g) => {
+    const hand = handGroup(g);
+    root.add(hand);
+    return hand;
+  });
+  // frame the object and the hands (world = three.js coordinates), before the plane
+  const sphere = new THREE.Box3().setFromObject(root).getBoundingSphere(new THREE.Sphere());
+  if (plan.support_plane) root.add(planeMesh(plan.support_plane, centre, 3 * size));
+
+  const fov = 40;
+  const camera = new THREE.PerspectiveCamera(fov, viewport.clientWidth / viewport.clientHeight,
+    0.01, 20);
+  // look from the depth camera's side (the camera frame's origin), a little from above
+  const target = sphere.center;
+  const towardCamera = target.clone().negate().normalize();
+  towardCamera.y += 0.5;
+  const distance = 0.62 * sphere.radius / Math.sin(THREE.MathUtils.degToRad(fov / 2));
+  camera.position.copy(target).addScaledVector(towardCamera.normalize(), distance);
+  const controls = new OrbitControls(camera, renderer.domElement);
+  controls.target.copy(target);
+  controls.update();
+
+  function select(index) {
+    hands.forEach((hand, i) => hand.traverse((child) => {
+      if (child.isMesh) {
+        child.material.opacity = i === index ? 1.0 : 0.12;
+        child.material.depthWrite = i === index;
+        child.material.color.set(i === index ? 0x555a66 : 0x9aa0aa);
+      }
+    }));
+    [...listEl.children].forEach((item, i) => item.classList.toggle('selected', i === index));
+    renderer.render(scene, camera);
+  }
+
+  plan.grasps.forEach((g, i) => {
+    const item = describe(g, i);
+    item.addEventListener('click', () => select(i));
+    listEl.appendChild(item);
+  });
+  controls.addEventListener('change', () => renderer.render(scene, camera));
+  window.addEventListener('resize', () => {
+    camera.aspect = viewport.clientWidth / viewport.clientHeight;
+    camera.updateProjectionMatrix();
+    renderer.setSize(viewport.clientWidth, viewport.clientHeight);
+    renderer.render(scene, camera);
+  });
+  select(0);
+  if (plan.grasps.length === 0) {
+    statusEl.dataset.state = 'ready';
+    statusEl.textContent = `no grasp: ${plan.reason}`;
+    return;
+  }
+  statusEl.dataset.state = 'ready';
+  statusEl.textContent = `${plan.grasps.length} grasp(s), ${observed.points.length} observed ` +
+    `points, ${plan.views} view(s)`;
+}
+
+main().catch(fail);
