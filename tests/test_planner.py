@@ -168,3 +168,50 @@ def test_support_plane_parsing_and_frames():
     for bad in ("0,0,1", "a,b,c,d", "0,0,0,1"):
         with pytest.raises(ValueError):
             SupportPlane.parse(bad)
+
+
+@pytest.mark.parametrize("object_id", ["named/duck", "named/mug", "proc/box/3"])
+def test_fast_screen_agrees_with_the_exact_check_on_free_poses(object_id):
+    """On many random palm poses around the object, the distance-field screen and the exact
+    fcl check agree on whether the open hand is clear; where they differ, the hand is within
+    about a voxel of touching, and the screen never calls a colliding pose free."""
+    from completion.objects import load_object
+    from grasp.planner import _random_rotation
+    from grasp.screen import Screen
+
+    mesh = load_object(object_id)
+    screen = Screen(mesh)
+    scene = CollisionScene(mesh)
+    rng = np.random.default_rng(0)
+    palms = np.tile(np.eye(4), (200, 1, 1))
+    for palm in palms:
+        palm[:3, :3] = _random_rotation(rng)
+        palm[:3, 3] = mesh.bounds.mean(axis=0) + rng.normal(scale=0.06, size=3)
+    spreads = rng.choice([0.0, 30.0, 60.0, 90.0], len(palms))
+    clearance = screen.clearance(palms, spreads)
+    exact = []
+    for palm, spread in zip(palms, spreads, strict=True):
+        joints = np.zeros(8)
+        joints[[0, 3]] = np.radians(spread)
+        links = scene.kinematics.link_poses(joints)
+        exact.append(not scene.colliding_links({k: palm @ p for k, p in links.items()}))
+    exact = np.array(exact)
+    fast = clearance > 0
+    assert 0.05 < exact.mean() < 0.95  # both kinds of pose were tried
+    assert (fast == exact).mean() >= 0.97
+    assert not np.any(fast & ~exact)
+    assert np.abs(clearance[fast != exact]).max(initial=0.0) <= 1.5 * screen.field.pitch
+
+
+def test_fast_approach_stops_at_the_exact_contact():
+    from grasp.autograsp import autograsp
+    from grasp.screen import Screen
+
+    cube = trimesh.creation.box(extents=(0.06, 0.06, 0.06))
+    screen = Screen(cube)
+    palms = np.stack([c.palm_pose for c in candidate_poses(cube, n_candidates=24, seed=0)])
+    spreads = np.zeros(len(palms))
+    travel = screen.approach(palms, spreads, max_travel=0.3)
+    for palm, t in zip(palms, travel, strict=True):
+        exact = autograsp(cube, palm, spread_deg=0.0, max_travel=0.3, quality=False)
+        assert abs(t - exact.travel) < 1.5 * screen.field.pitch

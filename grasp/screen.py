@@ -1,0 +1,185 @@
+"""A fast screen of grasp candidates against a distance field, before the exact autograsp.
+
+:class:`DistanceField` is the object's signed distance on a voxel grid (scipy's Euclidean
+distance transform of the filled voxelization, outside positive), read with trilinear
+interpolation; beyond the grid it falls back to the distance to the object's bounding box, a
+lower bound. The hand is a cloud of points on its collision primitives' surfaces
+(:func:`hand_cloud`), so every check below is one vectorised lookup for all candidates at once:
+
+- :meth:`Screen.free`: is the open hand clear of the object at these palm poses?
+- :meth:`Screen.approach`: how far each hand moves along its +z before touching (sphere tracing
+  with the distance as a safe step).
+
+It is approximate near contact: a point cloud and a voxel grid stand for the exact shapes, so
+it agrees with the exact fcl check except within about a voxel of touching (the tests measure
+how often). Not yet used by :func:`grasp.planner.plan`: measured on this 2-core machine while a
+training run shared it, the field takes 10–25 ms per mesh but the lookups about 0.2 µs per hand
+point (3,150 points a pose), so screening 64 candidates through a sphere-traced approach is not
+yet cheaper than the exact autograsp it would spare; fewer points (only the faces that can touch
+first) and a coarse-to-fine lookup are the next step.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import trimesh
+from scipy import ndimage
+
+from completion.grid import sample_surface
+from hands.barrett import BH8_282, JOINT_NAMES, BarrettParams, HandKinematics
+
+#: Voxels of the distance field across the object's largest extent.
+FIELD_VOXELS = 32
+#: Spacing of the points sampled on the hand's primitives (metres).
+CLOUD_SPACING_M = 0.006
+
+
+@dataclass(frozen=True)
+class DistanceField:
+    """Signed distance (metres, negative inside) of a closed mesh on a padded voxel grid."""
+
+    values: np.ndarray  # (nx, ny, nz) signed distance at voxel centres
+    origin: np.ndarray  # (3,) centre of voxel (0, 0, 0)
+    pitch: float
+    lower: np.ndarray  # (3,) object's bounding box
+    upper: np.ndarray
+
+    @classmethod
+    def of(
+        cls, mesh: trimesh.Trimesh, *, voxels: int = FIELD_VOXELS, pad: int = 3
+    ) -> DistanceField:
+        """The field of ``mesh`` on a grid of ``voxels`` across its largest extent: the voxels
+        that dense surface samples fall in, filled (closed shells), then the Euclidean distance
+        transform both ways (about 10 ms for 32 voxels)."""
+        pitch = float(mesh.extents.max()) / voxels
+        origin = mesh.bounds[0] - pad * pitch  # centre of voxel (0, 0, 0)
+        shape = np.ceil(mesh.extents / pitch).astype(int) + 2 * pad + 1
+        samples = sample_surface(mesh.vertices, mesh.faces, spacing=pitch / 2)
+        index = np.clip(np.rint((samples - origin) / pitch).astype(int), 0, shape - 1)
+        shell = np.zeros(shape, dtype=bool)
+        shell[tuple(index.T)] = True
+        solid = ndimage.binary_fill_holes(shell)
+        outside = ndimage.distance_transform_edt(~solid)
+        inside = ndimage.distance_transform_edt(solid)
+        # a voxel centre's distance to the surface: about half a voxel less than to the nearest
+        # voxel centre of the other kind
+        values = pitch * np.where(solid, 0.5 - inside, outside - 0.5)
+        return cls(values, origin, pitch, mesh.bounds[0], mesh.bounds[1])
+
+    def __call__(self, points: np.ndarray) -> np.ndarray:
+        """Signed distance at (..., 3) points; beyond the grid a lower bound (the larger of the
+        distance to the object's bounding box and the field at the grid's edge minus the gap)."""
+        p = np.asarray(points, dtype=np.float64)
+        index = (p - self.origin) / self.pitch
+        clamped = np.clip(index, 0, np.asarray(self.values.shape) - 1)
+        flat = clamped.reshape(-1, 3).T
+        value = ndimage.map_coordinates(self.values, flat, order=1, mode="nearest")
+        value = value.reshape(p.shape[:-1])
+        gap = self.pitch * np.linalg.norm(index - clamped, axis=-1)
+        outside = np.maximum(np.maximum(self.lower - p, p - self.upper), 0.0)
+        return np.where(gap > 0, np.maximum(value - gap, np.linalg.norm(outside, axis=-1)), value)
+
+
+def _box_surface(half: np.ndarray, spacing: float) -> np.ndarray:
+    """Points on the surface of a box of half extents ``half``, at most ``spacing`` apart."""
+    axes = [np.linspace(-h, h, max(2, int(np.ceil(2 * h / spacing)) + 1)) for h in half]
+    grid = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
+    on_face = np.any(np.isclose(np.abs(grid), half), axis=1)
+    return grid[on_face]
+
+
+def _cylinder_surface(radius: float, length: float, spacing: float) -> np.ndarray:
+    n_around = max(8, int(np.ceil(2 * np.pi * radius / spacing)))
+    angles = np.linspace(0, 2 * np.pi, n_around, endpoint=False)
+    zs = np.linspace(-length / 2, length / 2, max(2, int(np.ceil(length / spacing)) + 1))
+    ring = np.stack([radius * np.cos(angles), radius * np.sin(angles)], axis=1)
+    side = np.concatenate([np.c_[ring, np.full(len(ring), z)] for z in zs])
+    disks = []
+    for r in np.arange(0.0, radius, spacing):
+        k = max(1, int(np.ceil(2 * np.pi * r / spacing)))
+        a = np.linspace(0, 2 * np.pi, k, endpoint=False)
+        for z in (-length / 2, length / 2):
+            disks.append(np.c_[r * np.cos(a), r * np.sin(a), np.full(k, z)])
+    return np.concatenate([side, *disks])
+
+
+def hand_cloud(
+    kinematics: HandKinematics, spacing: float = CLOUD_SPACING_M
+) -> dict[str, np.ndarray]:
+    """Per link, (n, 4) homogeneous points on its collision primitives, in the link frame."""
+    cloud: dict[str, list[np.ndarray]] = {}
+    for prim in kinematics.primitives:
+        if prim.kind == "box":
+            local = _box_surface(0.5 * np.asarray(prim.size), spacing)
+        else:
+            local = _cylinder_surface(*prim.size, spacing)
+        points = local @ prim.pose[:3, :3].T + prim.pose[:3, 3]
+        cloud.setdefault(prim.link, []).append(points)
+    return {link: np.c_[np.concatenate(p), np.ones(sum(len(x) for x in p))]
+            for link, p in cloud.items()}
+
+
+class Screen:
+    """The screen for one object: its distance field and the hand's point cloud."""
+
+    def __init__(
+        self,
+        mesh: trimesh.Trimesh,
+        *,
+        params: BarrettParams = BH8_282,
+        margin: float = 0.0,
+        spacing: float = CLOUD_SPACING_M,
+    ) -> None:
+        self.field = DistanceField.of(mesh)
+        self.kinematics = HandKinematics(params)
+        self.cloud = hand_cloud(self.kinematics, spacing)
+        self.margin = margin
+        self._open: dict[float, np.ndarray] = {}
+
+    def open_hand(self, spread_deg: float) -> np.ndarray:
+        """(n, 3) points of the open hand at this spread, palm frame (cached per spread)."""
+        key = float(spread_deg)
+        if key not in self._open:
+            joints = np.zeros(len(JOINT_NAMES))
+            joints[[JOINT_NAMES.index("f1_spread"), JOINT_NAMES.index("f2_spread")]] = key
+            poses = self.kinematics.link_poses(np.radians(joints))
+            self._open[key] = np.concatenate(
+                [(poses[link] @ pts.T)[:3].T for link, pts in self.cloud.items()]
+            )
+        return self._open[key]
+
+    def _world(self, palms: np.ndarray, spreads_deg: np.ndarray, travel=None) -> np.ndarray:
+        """(k, n, 3) the open hands at the palm poses, moved ``travel`` along their +z."""
+        local = np.stack([self.open_hand(s) for s in spreads_deg])
+        origin = palms[:, :3, 3]
+        if travel is not None:
+            origin = origin + travel[:, None] * palms[:, :3, 2]
+        return np.einsum("kij,knj->kni", palms[:, :3, :3], local) + origin[:, None, :]
+
+    def clearance(self, palms: np.ndarray, spreads_deg: np.ndarray) -> np.ndarray:
+        """(k,) smallest signed distance from the open hand to the object at each palm pose."""
+        return self.field(self._world(palms, spreads_deg)).min(axis=1)
+
+    def free(self, palms: np.ndarray, spreads_deg: np.ndarray) -> np.ndarray:
+        """(k,) bool: the open hand is clear of the object at each palm pose."""
+        return self.clearance(palms, spreads_deg) > self.margin
+
+    def approach(
+        self, palms: np.ndarray, spreads_deg: np.ndarray, max_travel: float, tol: float = 1e-3
+    ) -> np.ndarray:
+        """(k,) travel along each palm's +z to first contact (``max_travel`` if none): sphere
+        tracing, each step the hand's clearance, which no point of the hand can cross."""
+        travel = np.zeros(len(palms))
+        active = np.ones(len(palms), dtype=bool)
+        for _ in range(64):
+            if not active.any():
+                break
+            idx = np.flatnonzero(active)
+            gap = self.field(self._world(palms[idx], spreads_deg[idx], travel[idx])).min(axis=1)
+            done = (gap < tol) | (travel[idx] >= max_travel)
+            step = np.where(done, 0.0, np.maximum(gap, tol))
+            travel[idx] = np.minimum(travel[idx] + step, max_travel)
+            active[idx[done]] = False
+        return travel
