@@ -25,7 +25,7 @@ from service import inspector  # its data routes join `router` on import
 from service.deps import Services
 from service.inputs import InputError
 from service.pipeline import ModelMismatch, Pipeline
-from service.planning import Planner
+from service.planning import ClientGone, Planner, PlannerBusy
 from service.routes import health_router, router
 from service.sessions import (
     ConcurrentUpdate,
@@ -82,7 +82,12 @@ async def _lifespan(app: FastAPI) -> AsyncIterator[None]:
         settings=settings,
         pipeline=pipeline,
         inference=CapacityLimiter(settings.inference_workers),
-        planner=Planner(settings.planning_workers, processes=settings.planning_processes),
+        planner=Planner(
+            settings.planning_workers,
+            processes=settings.planning_processes,
+            queue=settings.planning_queue,
+            cache=settings.plan_cache,
+        ),
         locks=SessionLocks(),
     )
     log.info("model %s (weights %s), store %s", settings.model, pipeline.model_id, store.path)
@@ -116,6 +121,8 @@ _STATUS: dict[type[Exception], int] = {
     ModelMismatch: status.HTTP_409_CONFLICT,
     ConcurrentUpdate: status.HTTP_409_CONFLICT,
     StoreFull: status.HTTP_503_SERVICE_UNAVAILABLE,
+    PlannerBusy: status.HTTP_503_SERVICE_UNAVAILABLE,
+    ClientGone: 499,  # nginx's "client closed request": nobody reads it
 }
 _HINTS: dict[type[Exception], str] = {
     NoObjectError: "; POST /views with a view that shows the object first",
@@ -126,7 +133,9 @@ _HINTS: dict[type[Exception], str] = {
 def _message_handler(code: int):
     async def handler(request: Request, exc: Exception) -> JSONResponse:
         detail = str(exc) + _HINTS.get(type(exc), "")
-        headers = {"Retry-After": "60"} if code == status.HTTP_503_SERVICE_UNAVAILABLE else None
+        headers = None
+        if code == status.HTTP_503_SERVICE_UNAVAILABLE:  # a busy planner frees up in seconds
+            headers = {"Retry-After": "1" if isinstance(exc, PlannerBusy) else "60"}
         return JSONResponse({"detail": detail}, status_code=code, headers=headers)
 
     return handler

@@ -19,7 +19,7 @@ from pathlib import Path as FilePath
 
 import numpy as np
 import trimesh
-from fastapi import APIRouter, Response
+from fastapi import APIRouter, Request, Response
 from fastapi.responses import FileResponse
 from fastapi.staticfiles import StaticFiles
 
@@ -74,18 +74,21 @@ async def get_observed(session_id: PathId, services: ServicesDep) -> ObservedOut
     response_class=Response,
     responses={
         200: {"content": {"model/gltf-binary": {}}, "description": "the scene as GLB"},
-        **_errors(404, 409),
+        **_errors(404, 409, 503),
     },
 )
 async def get_scene(
     session_id: PathId,
     services: ServicesDep,
+    request: Request,
     top_k: TopK = 5,
     n_candidates: NCandidates = None,
     support_plane: SupportPlaneQuery = None,
 ) -> Response:
     """The inspector's scene as one GLB file (latest camera frame, metres)."""
-    plan, mesh = await plan_session(services, session_id, top_k, n_candidates, support_plane)
+    plan, mesh = await plan_session(
+        services, request, session_id, top_k, n_candidates, support_plane
+    )
     _, points = await services.infer(services.pipeline.observed, session_id)
     data = await services.infer(scene_glb, plan, mesh, points)
     return Response(

@@ -5,15 +5,24 @@ event loop and the model steps need nor takes the server down if it crashes, and
 lower CPU priority than the model steps of ``POST /views``. ``GRASP_PLANNING_PROCESSES=false``
 runs it in threads instead (what the in-process tests use). This module does not import torch,
 so the worker processes stay small.
+
+Requests beyond the workers wait in a bounded queue (``GRASP_PLANNING_QUEUE``; more get 503 at
+once rather than piling up), a request whose client has gone while it waited is dropped before
+it reaches a worker, and a plan is kept (``GRASP_PLAN_CACHE`` plans, least recently used out)
+so that asking again about an unchanged mesh with the same options costs nothing: the inspector
+page, ``scene.glb`` and a robot polling ``GET /grasp`` between views all hit it.
 """
 
 from __future__ import annotations
 
 import asyncio
+import hashlib
 import logging
 import multiprocessing
 import os
 import time
+from collections import OrderedDict
+from collections.abc import Awaitable, Callable
 from concurrent.futures import ProcessPoolExecutor
 from concurrent.futures.process import BrokenProcessPool
 from functools import partial
@@ -56,14 +65,31 @@ def _import_planner() -> None:
     import grasp.planner  # noqa: F401
 
 
-class Planner:
-    """Runs :func:`plan_grasps`, at most ``workers`` at once, in processes or threads."""
+class PlannerBusy(RuntimeError):
+    """More grasp plans are waiting than the queue holds."""
 
-    def __init__(self, workers: int, *, processes: bool) -> None:
+
+class ClientGone(RuntimeError):
+    """The client disconnected while its plan waited for a worker."""
+
+
+class Planner:
+    """Runs :func:`plan_grasps`, at most ``workers`` at once, in processes or threads, with a
+    bounded queue in front and a cache of recent plans."""
+
+    def __init__(
+        self, workers: int, *, processes: bool, queue: int = 16, cache: int = 128
+    ) -> None:
         self.workers = workers
         self.processes = processes
+        self.queue = queue
         self._limiter = CapacityLimiter(workers)
         self._pool: ProcessPoolExecutor | None = None
+        self._pending = 0  # plans admitted: running or waiting
+        self._running = asyncio.Semaphore(workers)
+        self._cache: OrderedDict[str, tuple[list, float]] = OrderedDict()
+        self._cache_size = cache
+        self.cache_hits = 0
 
     def _executor(self) -> ProcessPoolExecutor:
         if self._pool is None:
@@ -83,7 +109,38 @@ class Planner:
         seed: int,
         top_k: int,
         support_plane=None,
-    ) -> tuple[list, float]:
+        gone: Callable[[], Awaitable[bool]] | None = None,
+    ) -> tuple[list, float, bool]:
+        """The plan, its planning seconds and whether it came from the cache (then the seconds
+        are those of the original plan). ``gone``: an async check that the client
+        disconnected, asked once a worker is free."""
+        key = _plan_key(vertices, faces, n_candidates, seed, top_k, support_plane)
+        if key in self._cache:
+            self._cache.move_to_end(key)
+            self.cache_hits += 1
+            return (*self._cache[key], True)
+        if self._pending >= self.workers + self.queue:
+            raise PlannerBusy(
+                f"{self._pending} grasp plans are running or waiting (at most "
+                f"{self.workers + self.queue}); try again shortly"
+            )
+        self._pending += 1
+        try:
+            async with self._running:
+                if gone is not None and await gone():
+                    raise ClientGone("the client disconnected while its plan waited")
+                result = await self._run(
+                    vertices, faces, n_candidates, seed, top_k, support_plane
+                )
+        finally:
+            self._pending -= 1
+        if self._cache_size:
+            self._cache[key] = result
+            while len(self._cache) > self._cache_size:
+                self._cache.popitem(last=False)
+        return (*result, False)
+
+    async def _run(self, vertices, faces, n_candidates, seed, top_k, support_plane):
         call = partial(
             plan_grasps,
             vertices,
@@ -105,6 +162,11 @@ class Planner:
                 pool.shutdown(wait=False, cancel_futures=True)
             raise
 
+    @property
+    def pending(self) -> int:
+        """Plans admitted and not finished (running or waiting for a worker)."""
+        return self._pending
+
     def warm_up(self) -> None:
         """Start the worker processes and import the planner there, without waiting for it."""
         if self.processes:
@@ -115,3 +177,15 @@ class Planner:
         if self._pool is not None:
             self._pool.shutdown(wait=True, cancel_futures=True)
             self._pool = None
+
+
+def _plan_key(vertices, faces, n_candidates, seed, top_k, support_plane) -> str:
+    """The identity of a plan: the mesh's bytes and every option."""
+    digest = hashlib.sha1()
+    digest.update(np.ascontiguousarray(vertices, dtype="<f8").tobytes())
+    digest.update(np.ascontiguousarray(faces, dtype="<i8").tobytes())
+    plane = None if support_plane is None else (
+        *np.round(support_plane.normal, 12).tolist(), round(support_plane.offset, 12)
+    )
+    digest.update(repr((n_candidates, seed, top_k, plane)).encode())
+    return digest.hexdigest()

@@ -12,7 +12,7 @@ from datetime import UTC, datetime
 from typing import Annotated
 
 import numpy as np
-from fastapi import APIRouter, Depends, Path, Query, Response, status
+from fastapi import APIRouter, Depends, Path, Query, Request, Response, status
 
 from completion.mesh import MeshFormat, export_mesh
 from grasp.planner import SupportPlane, hand_primitives
@@ -46,7 +46,7 @@ _WHY = {
     409: "the session cannot answer yet (no object seen, empty completion, other model)",
     413: "request body over GRASP_MAX_BODY_BYTES",
     422: "invalid input; the detail says what was expected",
-    503: "the session store is full",
+    503: "the session store is full, or too many grasp plans are waiting (Retry-After)",
 }
 
 
@@ -97,21 +97,29 @@ SupportPlaneQuery = Annotated[
 ]
 
 
-@router.get("/grasp", response_model=GraspsOut, responses=_errors(404, 409))
+@router.get("/grasp", response_model=GraspsOut, responses=_errors(404, 409, 503))
 async def get_grasp(
     services: ServicesDep,
+    request: Request,
     session_id: Annotated[str, Query(min_length=1, max_length=128)],
     top_k: TopK = 1,
     n_candidates: NCandidates = None,
     support_plane: SupportPlaneQuery = None,
 ) -> GraspsOut:
     """Complete the session's current state, mesh it and plan BarrettHand grasps."""
-    out, _ = await plan_session(services, session_id, top_k, n_candidates, support_plane)
+    out, _ = await plan_session(
+        services, request, session_id, top_k, n_candidates, support_plane
+    )
     return out
 
 
 async def plan_session(
-    services, session_id: str, top_k: int, n_candidates: int | None, support_plane: str | None
+    services,
+    request: Request,
+    session_id: str,
+    top_k: int,
+    n_candidates: int | None,
+    support_plane: str | None,
 ):
     """What ``GET /grasp`` answers, and the completion mesh it planned on (camera frame)."""
     start = time.perf_counter()
@@ -136,14 +144,16 @@ async def plan_session(
                 "(the latest view came without one)",
             )
         plane = plane.transformed(snapshot.camera_to_world)  # into the latest camera frame
-    results, seconds = await services.planner.plan(
+    results, seconds, cached = await services.planner.plan(
         mesh.vertices, mesh.faces, n_candidates=n, seed=s.plan_seed, top_k=top_k,
-        support_plane=plane,
+        support_plane=plane, gone=request.is_disconnected,
     )
     total = (time.perf_counter() - start) * 1e3
-    timing["planning"] = seconds * 1e3
+    timing["planning"] = 0.0 if cached else seconds * 1e3
     timing |= {"waiting": max(total - sum(timing.values()), 0.0), "total": total}
-    return _grasps_out(snapshot, results, timing, plane), mesh
+    out = _grasps_out(snapshot, results, timing, plane)
+    out.cached = cached
+    return out, mesh
 
 
 @router.get("/sessions/{session_id}", response_model=SessionOut, responses=_errors(404))

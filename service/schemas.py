@@ -135,6 +135,9 @@ class GraspsOut(BaseModel):
     camera_pose: list[list[float]] | None = Field(
         None, description="4×4 camera→world of the latest view, when it came with one"
     )
+    cached: bool = Field(
+        False, description="the plan of an earlier request on the same mesh with the same options"
+    )
     support_plane: list[float] | None = Field(
         None,
         description="the support plane the grasps respect, [nx, ny, nz, d] in the latest "

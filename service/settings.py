@@ -45,6 +45,12 @@ class Settings(BaseSettings):
         2, ge=1, description="model steps (POST /views, completions) running at once"
     )
     planning_workers: int = Field(2, ge=1, description="grasp plans running at once")
+    planning_queue: int = Field(
+        16, ge=0, description="grasp plans waiting for a worker at most; more get 503"
+    )
+    plan_cache: int = Field(
+        128, ge=0, description="plans kept for a repeated GET /grasp on an unchanged mesh"
+    )
     planning_processes: bool = Field(
         True, description="plan in worker processes (false: in threads of the server process)"
     )

@@ -977,3 +977,57 @@ def test_golden_check_catches_a_moved_grasp(tmp_path, tiny_model):
     golden["joints_deg"]["f3_prox"] += 1.0
     with pytest.raises(AssertionError, match="f3_prox"):
         compare_golden(got, golden)
+
+
+def test_repeated_grasp_on_an_unchanged_session_is_cached(client, scene):
+    bodies = scene_views(scene)[:2]
+    sid = new_session(client, bodies[0])
+    params = {"session_id": sid, "top_k": 2, "n_candidates": 8}
+    first = client.get("/grasp", params=params).json()
+    again = client.get("/grasp", params=params).json()
+    assert first["cached"] is False and again["cached"] is True
+    assert again["grasps"] == first["grasps"] and again["timing_ms"]["planning"] == 0.0
+    assert client.get("/grasp", params=params | {"top_k": 1}).json()["cached"] is False
+    client.post("/views", json=bodies[1] | {"session_id": sid})  # a new view: a new mesh
+    assert client.get("/grasp", params=params).json()["cached"] is False
+
+
+def test_planner_queue_is_bounded_and_gone_clients_are_dropped(monkeypatch):
+    """One worker, no queue: a second plan while the first runs is refused (503 upstream);
+    a plan whose client left while it waited never reaches the worker."""
+    import asyncio
+    import time as _time
+
+    from service import planning
+
+    calls = []
+
+    def slow_plan(vertices, faces, **options):
+        calls.append(options)
+        _time.sleep(0.3)
+        return [], 0.3
+
+    monkeypatch.setattr(planning, "plan_grasps", slow_plan)
+
+    async def scenario():
+        planner = planning.Planner(1, processes=False, queue=0, cache=0)
+        mesh = (np.zeros((3, 3)), np.array([[0, 1, 2]]))
+        first = asyncio.create_task(planner.plan(*mesh, n_candidates=4, seed=0, top_k=1))
+        await asyncio.sleep(0.05)
+        with pytest.raises(planning.PlannerBusy, match="try again"):
+            await planner.plan(*mesh, n_candidates=5, seed=0, top_k=1)
+        await first
+        queued = planning.Planner(1, processes=False, queue=1, cache=0)
+        running = asyncio.create_task(queued.plan(*mesh, n_candidates=6, seed=0, top_k=1))
+        await asyncio.sleep(0.05)
+
+        async def gone():
+            return True
+
+        with pytest.raises(planning.ClientGone):
+            await queued.plan(*mesh, n_candidates=7, seed=0, top_k=1, gone=gone)
+        await running
+        assert queued.pending == 0
+
+    asyncio.run(scenario())
+    assert [c["n_candidates"] for c in calls] == [4, 6]
