@@ -25,12 +25,19 @@ class EmptyMeshError(ValueError):
 
 
 def grid_to_mesh(
-    probabilities: np.ndarray, grid_to_camera: np.ndarray, *, threshold: float = 0.5
+    probabilities: np.ndarray,
+    grid_to_camera: np.ndarray,
+    *,
+    threshold: float = 0.5,
+    oriented: bool = True,
 ) -> trimesh.Trimesh:
     """Mesh of the iso-surface ``probabilities == threshold``, vertices in metres (camera frame).
 
     probabilities : (40, 40, 40) float in [0, 1] or bool
     grid_to_camera : (4, 4) float
+    oriented : merge and clean up with trimesh and make the normals point outward (what grasping
+        and export need); False gives marching cubes' triangles as they are, faster, enough for
+        sampling the surface
     Raises EmptyMeshError when nothing reaches the threshold.
     """
     from skimage.measure import marching_cubes
@@ -47,7 +54,10 @@ def grid_to_mesh(
     verts, faces, _, _ = marching_cubes(padded, level=threshold)
     verts = verts - 1.0  # undo the padding: back to the grid's voxel indices
     # skimage orients faces by the gradient toward higher values; flip so normals point outward.
-    mesh = trimesh.Trimesh(indices_to_points(verts, grid_to_camera), faces[:, ::-1], process=True)
+    points = indices_to_points(verts, grid_to_camera)
+    if not oriented:
+        return trimesh.Trimesh(points, faces, process=False)
+    mesh = trimesh.Trimesh(points, faces[:, ::-1], process=True)
     if mesh.volume < 0:
         mesh.invert()
     return mesh

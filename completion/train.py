@@ -19,9 +19,12 @@ written to ``--out`` (fp16 weights, loaded back to fp32) with its figures, and
 ``<run-dir>/last.pt`` holds the full training state (weights, optimizer, sampler) for
 ``--resume``. ``--init-from`` starts a multi-view model from a trained Single-View U-Net.
 
-One decision threshold for all models is then chosen on the validation sweeps::
+One decision threshold for all models is then chosen on the validation sweeps, and the
+per-view validation Jaccard of a model, with its memory and with every view alone, shows what
+the memory adds::
 
     python -m completion.train select-threshold completion/weights/*.pt
+    python -m completion.train per-view completion/weights/mvp.pt
 """
 
 from __future__ import annotations
@@ -282,6 +285,27 @@ def train(args: argparse.Namespace) -> dict:
     return summary
 
 
+@torch.no_grad()
+def per_view(path: Path, val_dir: Path, threshold: float | None = None) -> dict:
+    """Validation Jaccard per view index and condition, with the model's memory and with every
+    view fed alone (a sequence of one): what the memory adds, view by view."""
+    model = load_checkpoint(path).eval()
+    thr = float(threshold if threshold is not None else getattr(model, "threshold", 0.5))
+    val = load_split(val_dir, list(CONDITIONS), "val")
+    names = np.asarray(val["condition"])
+    out = {}
+    for condition in (c for c in CONDITIONS if c in set(names)):
+        x, y = unpack(val["packed"][np.flatnonzero(names == condition)])
+        b, n = x.shape[:2]
+        alone = model(x.reshape(b * n, 1, *x.shape[2:])).reshape(x.shape)
+        rows = {}
+        for key, logits in (("with_memory", model(x)), ("views_alone", alone)):
+            scores = jaccard((torch.sigmoid(logits) >= thr).numpy(), y.bool().numpy()).mean(0)
+            rows[key] = np.round(scores, 4).tolist()
+        out[condition] = rows
+    return {"checkpoint": str(path), "threshold": thr, "per_view_jaccard": out}
+
+
 def select_threshold(paths: list[Path]) -> float:
     """Choose one decision threshold for every model: the one with the best validation Jaccard
     averaged over models and conditions (read from each checkpoint's stored sweep), and write it
@@ -358,6 +382,13 @@ def main(argv: list[str] | None = None) -> int:
                   f"(checkpoint files; missing: {missing})", file=sys.stderr)
             return 2
         select_threshold(paths)
+        return 0
+    if argv[:1] == ["per-view"]:
+        if len(argv) not in (2, 3) or not Path(argv[1]).is_file():
+            print("usage: python -m completion.train per-view CKPT [VAL_DIR] (a checkpoint "
+                  "file; validation shards, default data/val)", file=sys.stderr)
+            return 2
+        print(json.dumps(per_view(Path(argv[1]), Path(argv[2] if len(argv) == 3 else "data/val"))))
         return 0
     if argv[:1] == ["model-card"]:
         print(model_card([Path(a) for a in argv[1:]]))

@@ -93,3 +93,20 @@ def test_the_recipe_overfits_a_handful_of_sequences(shards, tmp_path, capsys):
     assert history[-1]["loss"] < 0.5 * history[0]["loss"], history
     sweep = read_checkpoint(out)["val"]  # the best checkpoint's Jaccard at each threshold
     assert max(v["mean"] for v in sweep.values()) > 0.9, sweep
+
+
+def test_per_view_reports_with_and_without_memory(shards, tmp_path, capsys):
+    out = tmp_path / "mvp.pt"
+    main(["--model", "mvp", "--views", "3", "--train-dir", str(shards / "train"),
+          "--val-dir", str(shards / "val"), "--train-count", "0", "--val-count", "0",
+          "--steps", "1", "--config", TINY, "--out", str(out),
+          "--run-dir", str(tmp_path / "run"), "--quiet"])
+    capsys.readouterr()
+    assert main(["per-view", str(out), str(shards / "val")]) == 0
+    report = json.loads(capsys.readouterr().out)
+    views = report["per_view_jaccard"]
+    assert set(views) == {"camera_pan", "object_hiding"}
+    for rows in views.values():
+        assert len(rows["with_memory"]) == len(rows["views_alone"]) == 3
+        assert rows["with_memory"][0] == pytest.approx(rows["views_alone"][0])  # no past yet
+    assert main(["per-view", str(tmp_path / "missing.pt")]) == 2

@@ -161,7 +161,9 @@ def _markdown_grasp_success(results: dict) -> list[str]:
         "gives held/tested. Every row's grasp is executed the same way on the true object: from "
         "the pre-grasp pose the hand moves in until it touches (guarded move), closes, lifts "
         "10 cm and shakes. Model rows use the grasp planned on their prediction; the true-mesh "
-        "row uses the grasp planned on the true mesh, so it is the upper bound of this protocol.",
+        "row uses the grasp planned on the true mesh: what a perfect completion would get. It "
+        "is an upper bound only as far as the planner's ranking predicts the lift test; where "
+        "a model row beats it, the ranking preferred a grasp that does not hold.",
         "",
         markdown_table(table, GRASP_SUCCESS, counts=counts),
         "",
@@ -190,7 +192,9 @@ def how_to_read(results: dict) -> list[str]:
         "- **Ceiling row (F-score).** The 40³ ground-truth grid itself scored like a prediction "
         "against the true object surfaces (inside the grid): what a perfect completion scores "
         "under this protocol (`fscore_ceiling` in results.json). A perfect completion's Jaccard "
-        "is 1 by definition.",
+        "is 1 by definition. The ceiling is lowest for the two-object conditions; a likely "
+        "cause (not measured) is that the grid, fitted to what the camera saw, cuts the second "
+        "object, and the 40³ target is closed at the grid's edge where the object is not.",
         "- **F-score sampling.** The prediction and the true surface are sampled independently "
         "and densely (10 points per voxel face of area, at least 8,192), so two samples of one "
         "surface score F@1% ≥ 0.98: the score measures surfaces, not sampling. d = 1% of the "

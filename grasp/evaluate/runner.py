@@ -292,8 +292,8 @@ class Evaluator:
     def _lift_tests(self, job: Job, truth, truth_scene, planned: dict, plan_seed: int) -> dict:
         """row -> lift test of the grasp planned on that row's prediction; TRUE_MESH -> of a
         grasp planned on the true mesh. Every grasp is executed the same way, on the true object
-        with a guarded approach (move in until contact), so the true-mesh row is an upper bound
-        of the model rows and not a different protocol."""
+        with a guarded approach (move in until contact), so the true-mesh row differs from the
+        model rows only in the shape it was planned on."""
         from grasp.physics import lift_test
         from grasp.planner import plan
 
