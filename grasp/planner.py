@@ -295,11 +295,14 @@ def plan(
         results = [r for r in results if not crosses(support_plane, r)]
     if top_k is None:  # every candidate's result, ranked (for diagnostics): no dedup
         return rank(results, scene)
-    # the first 4k of the ranking hold k distinct grasps unless many candidates coincide
-    best = distinct(rank(results, scene, top_k=4 * top_k), top_k)
-    if len(best) < top_k < len(results):
-        best = distinct(rank(results, scene), top_k)
-    return best
+    # score only as many as needed: the first k of the ranking, widened while duplicates
+    # among them leave fewer than k distinct grasps (the top one is always distinct)
+    width = top_k
+    while True:
+        best = distinct(rank(results, scene, top_k=width), top_k)
+        if len(best) >= top_k or width >= len(results):
+            return best
+        width = min(2 * width, len(results))
 
 
 def rank(
