@@ -14,7 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from completion.grid import GRID_SIZE, Intrinsics, VoxelGrid, depth_to_points
+from completion.grid import GRID_SIZE, Intrinsics, VoxelGrid, depth_to_points, indices_to_points
 from service.schemas import DepthIn, GridIn, ViewIn
 
 #: Largest |coordinate| (metres) accepted in points, depth and transforms: far beyond any depth
@@ -227,5 +227,12 @@ def _grid(grid: GridIn) -> VoxelGrid:
             "grid_to_camera must be pitch × identity plus a translation (grid axes along the "
             f"camera axes, DESIGN §3) with a pitch of {MIN_PITCH_M:g}…{MAX_PITCH_M:g} m; "
             f"got the 3×3 part {np.round(scale, 9).tolist()}",
+        )
+    centre = indices_to_points(np.full((1, 3), (GRID_SIZE - 1) / 2.0), t)[0]
+    if not centre[2] > 0.0:
+        raise InputError(
+            loc,
+            "the grid lies behind the camera: grid_to_camera must put the grid's centre in "
+            f"front of it (camera z > 0), got z = {centre[2]:.3g} m",
         )
     return VoxelGrid(VoxelGrid.unpack(raw), t)

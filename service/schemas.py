@@ -19,7 +19,7 @@ SessionId = Annotated[str, Field(min_length=1, max_length=128, description="from
 
 
 class _Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", strict=True)  # no coercion: true is not 1 m
 
 
 # ------------------------------------------------------------------------------- POST /views

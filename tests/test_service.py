@@ -342,6 +342,12 @@ def _png8() -> str:
 EYE = np.eye(4).tolist()
 
 
+def _z_shift(z: float) -> np.ndarray:
+    shift = np.zeros((4, 4))
+    shift[2, 3] = z
+    return shift
+
+
 def _depth_view(scene, **depth) -> dict:
     body = scene_views(scene, with_pose=False)[0]
     body["depth"] = body["depth"] | depth
@@ -394,6 +400,13 @@ BAD_VIEWS = [
      "mask must be standard base64"),
     ("fx zero", lambda s: _depth_view(s) | {"intrinsics": {"fx": 0, "fy": 1, "cx": 0, "cy": 0}},
      ["body", "intrinsics", "fx"], "greater than 0"),
+    ("boolean coordinate", lambda s: {"points": [[0, 0, True]]}, ["body", "points", 0, 2],
+     "valid number"),  # strict: true is not 1 m
+    ("string coordinate", lambda s: {"points": [[0, "0", 0.5]]}, ["body", "points", 0, 1],
+     "valid number"),
+    ("grid behind", lambda s: {"grid": {"data": b64(bytes(8000)), "grid_to_camera": (
+        np.diag([0.005, 0.005, 0.005, 1.0]) + _z_shift(-5.0)).tolist()}},
+     ["body", "grid", "grid_to_camera"], "the grid lies behind the camera"),
     ("grid length", lambda s: {"grid": {"data": b64(bytes(10)), "grid_to_camera": EYE}},
      ["body", "grid", "data"], "grid.data must hold 8000 bytes (40³ bits packed"),
     ("grid singular", lambda s: {"grid": {"data": b64(bytes(8000)),
