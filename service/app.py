@@ -73,7 +73,10 @@ async def _lifespan(app: FastAPI) -> AsyncIterator[None]:
     torch.set_num_threads(settings.torch_threads)
     model = await anyio.to_thread.run_sync(load_model, settings.model)
     store = SessionStore(
-        settings.store_path, max_sessions=settings.max_sessions, ttl_s=settings.session_ttl_s
+        settings.store_path,
+        max_sessions=settings.max_sessions,
+        ttl_s=settings.session_ttl_s,
+        unseen_ttl_s=settings.unseen_session_ttl_s,
     )
     pipeline = await anyio.to_thread.run_sync(
         lambda: Pipeline(model, store, model_name=settings.model)

@@ -160,7 +160,7 @@ async def plan_session(
 async def get_session(session_id: PathId, services: ServicesDep) -> SessionOut:
     """A session's view count and times."""
     record = await services.io(services.pipeline.store.get, session_id)
-    ttl = services.pipeline.store.ttl_s
+    ttl = services.pipeline.store.ttl_of(record)
     return SessionOut(
         session_id=record.id,
         views=record.views,

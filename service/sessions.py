@@ -60,6 +60,10 @@ class SessionRecord:
     state: bytes  # CompletionStream.to_bytes()
 
 
+#: SQL condition of an expired session, with the two limits of :meth:`SessionStore._limits`.
+_EXPIRED = "((object_seen = 1 AND updated < ?) OR (object_seen = 0 AND updated < ?))"
+
+
 class SessionStore:
     """Sessions in one SQLite file; safe to use from many threads (a connection per call)."""
 
@@ -69,11 +73,14 @@ class SessionStore:
         *,
         max_sessions: int,
         ttl_s: float,
+        unseen_ttl_s: float | None = None,
         clock: Callable[[], float] = time.time,
     ) -> None:
         self.path = Path(path)
         self.max_sessions = max_sessions
         self.ttl_s = ttl_s
+        # a session that never saw an object lives this long (it cannot answer anything yet)
+        self.unseen_ttl_s = ttl_s if unseen_ttl_s is None else min(unseen_ttl_s, ttl_s)
         self.clock = clock
         self.path.parent.mkdir(parents=True, exist_ok=True)
         with closing(self._connect()) as con:
@@ -88,7 +95,8 @@ class SessionStore:
     def not_found_message(self, session_id: str) -> str:
         return (
             f"unknown session {session_id!r}: it does not exist, was deleted, or expired after "
-            f"{self.ttl_s:g} s without a view; POST /views without session_id starts a new one"
+            f"{self.ttl_s:g} s without a view ({self.unseen_ttl_s:g} s while no view had shown "
+            "the object); POST /views without session_id starts a new one"
         )
 
     # ---------------------------------------------------------------------------- reads
@@ -103,7 +111,7 @@ class SessionStore:
             if row is None:
                 raise SessionNotFound(self.not_found_message(session_id))
             record = SessionRecord(*row[:5], bool(row[5]), bytes(row[6]))
-            if self._expired(record.updated):
+            if self._expired(record.updated, record.object_seen):
                 con.execute(
                     "DELETE FROM sessions WHERE id = ? AND updated = ?",
                     (session_id, record.updated),
@@ -113,9 +121,8 @@ class SessionStore:
 
     def count(self) -> int:
         with closing(self._connect()) as con:
-            (n,) = con.execute(
-                "SELECT COUNT(*) FROM sessions WHERE updated >= ?", (self.clock() - self.ttl_s,)
-            ).fetchone()
+            query = f"SELECT COUNT(*) FROM sessions WHERE NOT {_EXPIRED}"
+            (n,) = con.execute(query, self._limits()).fetchone()
         return int(n)
 
     def ensure_room(self) -> None:
@@ -129,8 +136,17 @@ class SessionStore:
             f"or retry once idle ones expire ({self.ttl_s:g} s after their last view)"
         )
 
-    def _expired(self, updated: float) -> bool:
-        return updated < self.clock() - self.ttl_s
+    def _expired(self, updated: float, object_seen: bool) -> bool:
+        return updated < self.clock() - (self.ttl_s if object_seen else self.unseen_ttl_s)
+
+    def ttl_of(self, record: SessionRecord) -> float:
+        """Seconds after its last view that ``record`` expires."""
+        return self.ttl_s if record.object_seen else self.unseen_ttl_s
+
+    def _limits(self) -> tuple[float, float]:
+        """The oldest ``updated`` still alive: for seen, then for unseen sessions."""
+        now = self.clock()
+        return now - self.ttl_s, now - self.unseen_ttl_s
 
     # ---------------------------------------------------------------------------- writes
     def create(
@@ -141,7 +157,7 @@ class SessionStore:
         with closing(self._connect()) as con:
             con.execute("BEGIN IMMEDIATE")
             try:
-                con.execute("DELETE FROM sessions WHERE updated < ?", (now - self.ttl_s,))
+                con.execute(f"DELETE FROM sessions WHERE {_EXPIRED}", self._limits())
                 (n,) = con.execute("SELECT COUNT(*) FROM sessions").fetchone()
                 if n >= self.max_sessions:
                     raise self._full()
@@ -189,9 +205,7 @@ class SessionStore:
     def purge_expired(self) -> int:
         """Delete every expired session; returns how many."""
         with closing(self._connect()) as con:
-            cursor = con.execute(
-                "DELETE FROM sessions WHERE updated < ?", (self.clock() - self.ttl_s,)
-            )
+            cursor = con.execute(f"DELETE FROM sessions WHERE {_EXPIRED}", self._limits())
         if cursor.rowcount:
             log.info("purged %d expired sessions", cursor.rowcount)
         return cursor.rowcount

@@ -25,6 +25,12 @@ class Settings(BaseSettings):
     session_ttl_s: float = Field(
         3600.0, gt=0, description="a session idle for longer than this is deleted"
     )
+    unseen_session_ttl_s: float = Field(
+        60.0,
+        gt=0,
+        description="a session whose views never showed the object is deleted this long after "
+        "its last view (it cannot answer yet; keeps empty sessions from filling the store)",
+    )
     max_image_pixels: int = Field(
         2048 * 2048, ge=1, description="largest depth image (width × height) accepted"
     )

@@ -634,6 +634,24 @@ def test_idle_sessions_expire(tmp_path, tiny_model):
         assert client.post("/views", json=points_view()).status_code == 200  # room again
 
 
+def test_sessions_that_never_saw_the_object_expire_sooner(tmp_path, tiny_model):
+    config = settings(tmp_path, tiny_model, session_ttl_s=600, unseen_session_ttl_s=30,
+                      max_sessions=2)
+    with TestClient(create_app(config)) as client:
+        store = client.app.state.services.pipeline.store
+        now = [1000.0]
+        store.clock = lambda: now[0]
+        empty = client.post("/views", json={"points": []}).json()["session_id"]
+        seen = new_session(client)
+        assert client.get(f"/sessions/{empty}").json()["expires"] == "1970-01-01T00:17:10Z"
+        assert client.post("/views", json=points_view()).status_code == 503  # full
+        now[0] += 31
+        r = client.get(f"/sessions/{empty}")
+        assert r.status_code == 404 and "30 s while no view had shown the object" in r.text
+        assert client.get(f"/sessions/{seen}").status_code == 200  # 600 s for a seen one
+        assert client.post("/views", json=points_view()).status_code == 200  # room again
+
+
 def test_session_of_another_model_is_409(tmp_path, tiny_model):
     with TestClient(create_app(settings(tmp_path, tiny_model))) as client:
         sid = new_session(client)
