@@ -24,7 +24,7 @@ from completion.stream import NoObjectError
 from service import inspector  # its data routes join `router` on import
 from service.deps import Services
 from service.inputs import InputError
-from service.pipeline import ModelMismatch, Pipeline
+from service.pipeline import ModelMismatch, Pipeline, TooManyViews
 from service.planning import ClientGone, Planner, PlannerBusy
 from service.routes import health_router, router
 from service.sessions import (
@@ -79,7 +79,7 @@ async def _lifespan(app: FastAPI) -> AsyncIterator[None]:
         unseen_ttl_s=settings.unseen_session_ttl_s,
     )
     pipeline = await anyio.to_thread.run_sync(
-        lambda: Pipeline(model, store, model_name=settings.model)
+        lambda: Pipeline(model, store, model_name=settings.model, max_views=settings.max_views)
     )
     app.state.services = Services(
         settings=settings,
@@ -123,6 +123,7 @@ _STATUS: dict[type[Exception], int] = {
     EmptyMeshError: status.HTTP_409_CONFLICT,
     ModelMismatch: status.HTTP_409_CONFLICT,
     ConcurrentUpdate: status.HTTP_409_CONFLICT,
+    TooManyViews: status.HTTP_409_CONFLICT,
     StoreFull: status.HTTP_503_SERVICE_UNAVAILABLE,
     PlannerBusy: status.HTTP_503_SERVICE_UNAVAILABLE,
     ClientGone: 499,  # nginx's "client closed request": nobody reads it

@@ -29,6 +29,10 @@ class ModelMismatch(RuntimeError):
     """A stored session was made by a different model than the one this server runs."""
 
 
+class TooManyViews(RuntimeError):
+    """The session holds as many views as a model whose state grows with them may keep."""
+
+
 def model_fingerprint(model: torch.nn.Module) -> str:
     """A short hash of the weights: a stored state only fits the model that made it."""
     digest = hashlib.sha256()
@@ -50,11 +54,21 @@ class Snapshot:
 class Pipeline:
     """One loaded model and the session store; every method is blocking and thread-safe."""
 
-    def __init__(self, model: torch.nn.Module, store: SessionStore, *, model_name: str) -> None:
+    def __init__(
+        self,
+        model: torch.nn.Module,
+        store: SessionStore,
+        *,
+        model_name: str,
+        max_views: int | None = None,
+    ) -> None:
         self.model = model.eval()
         self.store = store
         self.model_name = model_name
         self.model_id = model_fingerprint(model)
+        # only a model whose state grows with every view (MVT's key/value cache) is capped
+        grows = getattr(getattr(model, "config", None), "kind", "") == "mvt"
+        self.max_views = max_views if grows else None
 
     # ---------------------------------------------------------------------------- views
     def add_view(self, session_id: str | None, view: DecodedView) -> tuple[str, ViewResult]:
@@ -74,6 +88,12 @@ class Pipeline:
             return session_id, result
         for _ in range(UPDATE_ATTEMPTS):
             record = self.store.get(session_id)
+            if self.max_views is not None and record.views >= self.max_views:
+                raise TooManyViews(
+                    f"session {session_id!r} has {record.views} views, the most a "
+                    f"{self.model_name!r} session keeps (its state grows with every view; "
+                    "GRASP_MAX_VIEWS): start a new session"
+                )
             stream = self._stream(record)
             result = _step(stream, view)
             try:

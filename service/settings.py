@@ -35,6 +35,12 @@ class Settings(BaseSettings):
         2048 * 2048, ge=1, description="largest depth image (width × height) accepted"
     )
     max_points: int = Field(500_000, ge=1, description="most points accepted in one view")
+    max_views: int = Field(
+        1000,
+        ge=1,
+        description="most views a session keeps when the model's state grows with each view "
+        "(MVT's key/value cache); MVP's state has a fixed size and is not capped",
+    )
     max_body_bytes: int = Field(
         32 * 1024 * 1024, ge=1024, description="largest request body; larger ones get 413"
     )

@@ -1062,3 +1062,21 @@ def test_planner_queue_is_bounded_and_gone_clients_are_dropped(monkeypatch):
 
     asyncio.run(scenario())
     assert [c["n_candidates"] for c in calls] == [4, 6]
+
+
+def test_views_are_capped_only_where_the_state_grows(tmp_path):
+    """An MVT session (its key/value cache grows with every view) stops at GRASP_MAX_VIEWS with
+    409; an MVP session (fixed-size state) is not capped."""
+    mvt = save_tiny(tmp_path / "mvt.pt", kind="mvt")
+    with TestClient(create_app(settings(tmp_path / "a", mvt, max_views=2))) as client:
+        sid = new_session(client)
+        assert client.post("/views", json=points_view() | {"session_id": sid}).status_code == 200
+        r = client.post("/views", json=points_view() | {"session_id": sid})
+        assert r.status_code == 409 and "has 2 views, the most" in r.json()["detail"]
+        assert client.get(f"/sessions/{sid}").json()["views"] == 2  # nothing lost
+    mvp = save_tiny(tmp_path / "mvp.pt", kind="mvp")
+    with TestClient(create_app(settings(tmp_path / "b", mvp, max_views=2))) as client:
+        sid = new_session(client)
+        for _ in range(3):
+            r = client.post("/views", json=points_view() | {"session_id": sid})
+            assert r.status_code == 200
