@@ -9,6 +9,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
+import re
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
 
@@ -22,7 +23,7 @@ from starlette.types import ASGIApp, Message, Receive, Scope, Send
 from completion.mesh import EmptyMeshError
 from completion.stream import NoObjectError
 from service import inspector  # its data routes join `router` on import
-from service.deps import Services
+from service.deps import Services, token_problem
 from service.inputs import InputError
 from service.pipeline import ModelMismatch, Pipeline, TooManyViews
 from service.planning import ClientGone, Planner, PlannerBusy
@@ -56,6 +57,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.include_router(health_router)
     inspector.mount(app)
     app.add_middleware(BodyLimit, max_bytes=settings.max_body_bytes)
+    token = None if settings.token is None else settings.token.get_secret_value()
+    app.add_middleware(TokenGate, token=token)  # added last: runs first, before the body
     for exc_type, code in _STATUS.items():
         app.add_exception_handler(exc_type, _message_handler(code))
     app.add_exception_handler(InputError, _input_error)
@@ -157,6 +160,39 @@ async def _validation_error(request: Request, exc: RequestValidationError) -> JS
         for e in exc.errors()
     ]
     return JSONResponse({"detail": detail}, status_code=status.HTTP_422_UNPROCESSABLE_CONTENT)
+
+
+#: Paths that need no token: liveness, the API documents, the inspector page and its assets.
+PUBLIC_PATHS = re.compile(
+    r"^/(healthz|docs(/.*)?|redoc|openapi\.json|static/inspector/.*|sessions/[^/]+/view)$"
+)
+
+
+class TokenGate:
+    """401 before the request body is read, when ``GRASP_TOKEN`` is set and the request does
+    not carry it (a tokenless 30 MB upload is refused without reading a byte of it)."""
+
+    def __init__(self, app: ASGIApp, *, token: str | None) -> None:
+        self.app = app
+        self.token = token
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] != "http" or self.token is None or PUBLIC_PATHS.match(scope["path"]):
+            await self.app(scope, receive, send)
+            return
+        header = next(
+            (v.decode("latin-1") for k, v in scope["headers"] if k == b"authorization"), None
+        )
+        problem = token_problem(header, self.token)
+        if problem is None:
+            await self.app(scope, receive, send)
+            return
+        response = JSONResponse(
+            {"detail": problem},
+            status.HTTP_401_UNAUTHORIZED,
+            headers={"WWW-Authenticate": "Bearer"},
+        )
+        await response(scope, receive, send)
 
 
 class BodyLimit:

@@ -49,24 +49,30 @@ ServicesDep = Annotated[Services, Depends(get_services)]
 _bearer = HTTPBearer(auto_error=False, description="needed when GRASP_TOKEN is set")
 
 
+def token_problem(authorization: str | None, token: str) -> str | None:
+    """Why an ``Authorization`` header value does not carry ``token`` (None when it does)."""
+    scheme, _, value = (authorization or "").partition(" ")
+    if scheme.lower() != "bearer" or not value:
+        return "missing bearer token: send the header 'Authorization: Bearer <token>'"
+    if not hmac.compare_digest(value.strip().encode(), token.encode()):
+        return "wrong bearer token: send the token the server was started with (GRASP_TOKEN)"
+    return None
+
+
 def require_token(
     services: ServicesDep,
     credentials: Annotated[HTTPAuthorizationCredentials | None, Depends(_bearer)],
 ) -> None:
-    """401 unless the request carries ``Authorization: Bearer <GRASP_TOKEN>`` (when one is set)."""
+    """401 unless the request carries ``Authorization: Bearer <GRASP_TOKEN>`` (when one is set).
+
+    :class:`service.app.TokenGate` has already checked this before the body was read; this
+    dependency declares the scheme in the OpenAPI document and guards in-process callers."""
     token = services.settings.token
     if token is None:
         return
-    challenge = {"WWW-Authenticate": "Bearer"}
-    if credentials is None:
+    header = None if credentials is None else f"{credentials.scheme} {credentials.credentials}"
+    problem = token_problem(header, token.get_secret_value())
+    if problem is not None:
         raise HTTPException(
-            status.HTTP_401_UNAUTHORIZED,
-            "missing bearer token: send the header 'Authorization: Bearer <token>'",
-            headers=challenge,
-        )
-    if not hmac.compare_digest(credentials.credentials.encode(), token.get_secret_value().encode()):
-        raise HTTPException(
-            status.HTTP_401_UNAUTHORIZED,
-            "wrong bearer token: send the token the server was started with (GRASP_TOKEN)",
-            headers=challenge,
+            status.HTTP_401_UNAUTHORIZED, problem, headers={"WWW-Authenticate": "Bearer"}
         )

@@ -1080,3 +1080,19 @@ def test_views_are_capped_only_where_the_state_grows(tmp_path):
         for _ in range(3):
             r = client.post("/views", json=points_view() | {"session_id": sid})
             assert r.status_code == 200
+
+
+def test_token_is_checked_before_the_body_is_read(tmp_path, tiny_model):
+    """Without the token, even a body that is not JSON gets 401, not 422: the gate answers
+    before the app reads it. The inspector page and its assets need no token."""
+    with TestClient(create_app(settings(tmp_path, tiny_model, token="s3cret"))) as client:
+        json_type = {"content-type": "application/json"}
+        r = client.post("/views", content=b"{not json", headers=json_type)
+        assert r.status_code == 401 and "missing bearer token" in r.json()["detail"]
+        ok = {"Authorization": "Bearer s3cret"}
+        r = client.post("/views", content=b"{not json", headers=ok | json_type)
+        assert r.status_code == 422
+        assert client.get("/sessions/abc/view").status_code == 200
+        assert client.get("/static/inspector/inspector.js").status_code == 200
+        assert client.get("/sessions/abc/observed").status_code == 401
+        assert client.get("/openapi.json").status_code == 200
