@@ -18,6 +18,7 @@ from anyio import CapacityLimiter
 from fastapi import FastAPI, HTTPException, Request, status
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
+from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from completion.mesh import EmptyMeshError
@@ -63,6 +64,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         app.add_exception_handler(exc_type, _message_handler(code))
     app.add_exception_handler(InputError, _input_error)
     app.add_exception_handler(RequestValidationError, _validation_error)
+    app.add_exception_handler(StarletteHTTPException, _http_error)
     return app
 
 
@@ -153,13 +155,40 @@ async def _input_error(request: Request, exc: InputError) -> JSONResponse:
     return JSONResponse({"detail": detail}, status_code=status.HTTP_422_UNPROCESSABLE_CONTENT)
 
 
+#: What a body must be, said when it is not even that.
+BODY_EXPECTED = (
+    "the body must be one JSON object in UTF-8, sent with 'content-type: application/json' "
+    "(see /docs)"
+)
+#: Plain words for the errors that mean "this is not the JSON object expected".
+_BODY_HINTS = {
+    "json_invalid": "the body is not valid JSON: " + BODY_EXPECTED,
+    "model_attributes_type": "the body is not a JSON object: " + BODY_EXPECTED,
+}
+
+
 async def _validation_error(request: Request, exc: RequestValidationError) -> JSONResponse:
-    """FastAPI's 422, without echoing the (possibly megabytes of) input back."""
-    detail = [
-        {"loc": list(e.get("loc", ())), "msg": e.get("msg", ""), "type": e.get("type", "")}
-        for e in exc.errors()
-    ]
+    """FastAPI's 422, without echoing the (possibly megabytes of) input back, and with what
+    was expected where the body is not a JSON object at all."""
+    detail = []
+    for e in exc.errors():
+        kind = e.get("type", "")
+        loc = list(e.get("loc", ()))
+        msg = e.get("msg", "")
+        if kind in _BODY_HINTS and loc[:1] == ["body"] and len(loc) <= 2:
+            msg = f"{msg}: {_BODY_HINTS[kind]}"  # loc keeps where JSON parsing stopped
+        detail.append({"loc": loc, "msg": msg, "type": kind})
     return JSONResponse({"detail": detail}, status_code=status.HTTP_422_UNPROCESSABLE_CONTENT)
+
+
+async def _http_error(request: Request, exc: StarletteHTTPException) -> JSONResponse:
+    """Starlette's own errors; its bare 400 for an undecodable body says what was expected."""
+    detail = exc.detail
+    if exc.status_code == status.HTTP_400_BAD_REQUEST and detail == (
+        "There was an error parsing the body"
+    ):
+        detail = "the body could not be decoded: " + BODY_EXPECTED
+    return JSONResponse({"detail": detail}, status_code=exc.status_code, headers=exc.headers)
 
 
 #: Paths that need no token: liveness, the API documents, the inspector page and its assets.

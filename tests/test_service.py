@@ -1096,3 +1096,20 @@ def test_token_is_checked_before_the_body_is_read(tmp_path, tiny_model):
         assert client.get("/static/inspector/inspector.js").status_code == 200
         assert client.get("/sessions/abc/observed").status_code == 401
         assert client.get("/openapi.json").status_code == 200
+
+
+@pytest.mark.parametrize(
+    ("body", "content_type", "code"),
+    [
+        (b"{not json", "application/json", 422),
+        (b"\xff\xfe\x00", "application/json", 400),
+        (b'{"points": [[0, 0, 1]]}', "text/plain", 422),
+        (b"a=1", "application/x-www-form-urlencoded", 422),
+    ],
+)
+def test_unparsable_bodies_say_what_was_expected(client, body, content_type, code):
+    r = client.post("/views", content=body, headers={"content-type": content_type})
+    assert r.status_code == code
+    text = r.text
+    assert "one JSON object in UTF-8" in text and "application/json" in text, text
+    assert "object at 0x" not in text  # no Python reprs
