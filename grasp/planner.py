@@ -31,6 +31,7 @@ from dataclasses import dataclass
 import numpy as np
 import trimesh
 
+from completion.grid import transform_points
 from grasp.autograsp import GraspResult, autograsp, with_quality
 from grasp.quality import contacts_wrenches, epsilon_upper_bound
 from grasp.sim import CollisionScene, check_mesh, fibonacci_directions
@@ -87,25 +88,29 @@ class SupportPlane:
 _KINEMATICS = HandKinematics()
 
 
+def _link_poses(grasp: GraspResult) -> dict[str, np.ndarray]:
+    """Every link's (4, 4) link→world pose in ``grasp``, by the hand's kinematics."""
+    joints = np.radians(np.asarray(grasp.joints_deg, dtype=np.float64))
+    return {link: grasp.palm_pose @ pose for link, pose in _KINEMATICS.link_poses(joints).items()}
+
+
 def hand_primitives(grasp: GraspResult) -> list[tuple[str, str, tuple[float, ...], np.ndarray]]:
     """The hand of ``grasp`` as collision primitives placed by the hand's kinematics:
     (link, "box" or "cylinder", size, (4, 4) primitive→world pose) each. Box sizes are full
     extents; a cylinder is (radius, length) along its local z."""
-    links = _KINEMATICS.link_poses(np.radians(np.asarray(grasp.joints_deg, dtype=np.float64)))
+    links = _link_poses(grasp)
     return [
-        (prim.link, prim.kind, tuple(prim.size), grasp.palm_pose @ links[prim.link] @ prim.pose)
+        (prim.link, prim.kind, tuple(prim.size), links[prim.link] @ prim.pose)
         for prim in _KINEMATICS.primitives
     ]
 
 
 def hand_points(grasp: GraspResult) -> np.ndarray:
     """(n, 3) corners of every collision primitive's box of the hand in ``grasp`` (world)."""
-    links = _KINEMATICS.link_poses(np.radians(np.asarray(grasp.joints_deg, dtype=np.float64)))
-    corners = [
-        grasp.palm_pose @ links[prim.link] @ np.c_[prim.corners(), np.ones(8)].T
-        for prim in _KINEMATICS.primitives
-    ]
-    return np.concatenate([c[:3].T for c in corners])
+    links = _link_poses(grasp)
+    return np.concatenate(
+        [transform_points(prim.corners(), links[prim.link]) for prim in _KINEMATICS.primitives]
+    )
 
 
 def crosses(plane: SupportPlane, grasp: GraspResult) -> bool:

@@ -63,9 +63,11 @@ async def view_page(session_id: PathId) -> FileResponse:
 )
 async def get_observed(session_id: PathId, services: ServicesDep) -> ObservedOut:
     """The latest view's observed voxel centres, in its camera frame (the completion's)."""
-    snapshot, points = await services.infer(services.pipeline.observed, session_id)
+    snapshot = await services.infer(services.pipeline.snapshot, session_id)
     return ObservedOut(
-        session_id=session_id, views=snapshot.record.views, points=np.round(points, 6).tolist()
+        session_id=session_id,
+        views=snapshot.record.views,
+        points=np.round(snapshot.observed, 6).tolist(),
     )
 
 
@@ -86,11 +88,10 @@ async def get_scene(
     support_plane: SupportPlaneQuery = None,
 ) -> Response:
     """The inspector's scene as one GLB file (latest camera frame, metres)."""
-    plan, mesh = await plan_session(
+    plan, mesh, snapshot = await plan_session(
         services, request, session_id, top_k, n_candidates, support_plane
     )
-    _, points = await services.infer(services.pipeline.observed, session_id)
-    data = await services.infer(scene_glb, plan, mesh, points)
+    data = await services.infer(scene_glb, plan, mesh, snapshot.observed)
     return Response(
         data,
         media_type="model/gltf-binary",

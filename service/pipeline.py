@@ -44,11 +44,13 @@ def model_fingerprint(model: torch.nn.Module) -> str:
 
 @dataclass(frozen=True)
 class Snapshot:
-    """A session's completion at one moment, with the camera pose of its latest view."""
+    """A session's completion at one moment, with the camera pose of its latest view and that
+    view's observed voxel centres (n, 3) in the same camera frame: one consistent state."""
 
     record: SessionRecord
     completion: Completion
     camera_to_world: np.ndarray | None  # (4, 4) of the latest view, when given
+    observed: np.ndarray  # (n, 3) the latest view's observed voxel centres
 
 
 class Pipeline:
@@ -123,15 +125,7 @@ class Pipeline:
         """The latest completion; raises NoObjectError before any view with object points."""
         record = self.store.get(session_id)
         stream = self._stream(record)
-        return Snapshot(record, stream.completion(), stream.camera_to_world)
-
-    def observed(self, session_id: str) -> tuple[Snapshot, np.ndarray]:
-        """The latest completion's snapshot and the latest view's observed voxel centres (n, 3)
-        in the same camera frame; raises NoObjectError before any view with object points."""
-        record = self.store.get(session_id)
-        stream = self._stream(record)
-        snap = Snapshot(record, stream.completion(), stream.camera_to_world)
-        return snap, stream.observed_points()
+        return _snapshot(record, stream, stream.completion())
 
     def occupancy(self, session_id: str) -> tuple[Snapshot, VoxelGrid]:
         snap = self.snapshot(session_id)
@@ -155,8 +149,12 @@ class Pipeline:
         )
         t3 = time.perf_counter()
         timing = {"load": t1 - t0, "completion": t2 - t1, "mesh": t3 - t2}
-        snapshot = Snapshot(record, completion, stream.camera_to_world)
+        snapshot = _snapshot(record, stream, completion)
         return snapshot, mesh, {k: v * 1e3 for k, v in timing.items()}
+
+
+def _snapshot(record: SessionRecord, stream: CompletionStream, completion: Completion) -> Snapshot:
+    return Snapshot(record, completion, stream.camera_to_world, stream.observed_points())
 
 
 def _step(stream: CompletionStream, view: DecodedView) -> ViewResult:

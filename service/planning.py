@@ -29,7 +29,6 @@ from functools import partial
 
 import anyio.to_thread
 import numpy as np
-from anyio import CapacityLimiter
 
 log = logging.getLogger(__name__)
 
@@ -83,7 +82,6 @@ class Planner:
         self.workers = workers
         self.processes = processes
         self.queue = queue
-        self._limiter = CapacityLimiter(workers)
         self._pool: ProcessPoolExecutor | None = None
         self._pending = 0  # plans admitted: running or waiting
         self._running = asyncio.Semaphore(workers)
@@ -151,7 +149,7 @@ class Planner:
             support_plane=support_plane,
         )
         if not self.processes:
-            return await anyio.to_thread.run_sync(call, limiter=self._limiter)
+            return await anyio.to_thread.run_sync(call)  # self._running bounds the workers
         pool = self._executor()
         try:
             return await asyncio.get_running_loop().run_in_executor(pool, call)

@@ -17,7 +17,7 @@ from fastapi import APIRouter, Depends, Path, Query, Request, Response, status
 from completion.mesh import MeshFormat, export_mesh
 from grasp.planner import SupportPlane, hand_primitives
 from hands.barrett import JOINT_NAMES
-from service.deps import ServicesDep, require_token
+from service.deps import Services, ServicesDep, require_token
 from service.inputs import InputError, decode_view
 from service.pipeline import Snapshot
 from service.schemas import (
@@ -107,21 +107,22 @@ async def get_grasp(
     support_plane: SupportPlaneQuery = None,
 ) -> GraspsOut:
     """Complete the session's current state, mesh it and plan BarrettHand grasps."""
-    out, _ = await plan_session(
+    out, _, _ = await plan_session(
         services, request, session_id, top_k, n_candidates, support_plane
     )
     return out
 
 
 async def plan_session(
-    services,
+    services: Services,
     request: Request,
     session_id: str,
     top_k: int,
     n_candidates: int | None,
     support_plane: str | None,
 ):
-    """What ``GET /grasp`` answers, and the completion mesh it planned on (camera frame)."""
+    """What ``GET /grasp`` answers, the completion mesh it planned on (camera frame) and the
+    snapshot both came from."""
     start = time.perf_counter()
     s = services.settings
     n = s.n_candidates if n_candidates is None else n_candidates
@@ -153,7 +154,7 @@ async def plan_session(
     timing |= {"waiting": max(total - sum(timing.values()), 0.0), "total": total}
     out = _grasps_out(snapshot, results, timing, plane)
     out.cached = cached
-    return out, mesh
+    return out, mesh, snapshot
 
 
 @router.get("/sessions/{session_id}", response_model=SessionOut, responses=_errors(404))
