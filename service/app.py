@@ -33,8 +33,9 @@ from service.sessions import (
     ConcurrentUpdate,
     SessionLocks,
     SessionNotFound,
-    SessionStore,
+    Store,
     StoreFull,
+    open_store,
 )
 from service.settings import Settings
 
@@ -77,12 +78,7 @@ async def _lifespan(app: FastAPI) -> AsyncIterator[None]:
     settings: Settings = app.state.settings
     torch.set_num_threads(settings.torch_threads)
     model = await anyio.to_thread.run_sync(load_model, settings.model)
-    store = SessionStore(
-        settings.store_path,
-        max_sessions=settings.max_sessions,
-        ttl_s=settings.session_ttl_s,
-        unseen_ttl_s=settings.unseen_session_ttl_s,
-    )
+    store = await anyio.to_thread.run_sync(open_store, settings)
     pipeline = await anyio.to_thread.run_sync(
         lambda: Pipeline(model, store, model_name=settings.model, max_views=settings.max_views)
     )
@@ -98,7 +94,7 @@ async def _lifespan(app: FastAPI) -> AsyncIterator[None]:
         ),
         locks=SessionLocks(),
     )
-    log.info("model %s (weights %s), store %s", settings.model, pipeline.model_id, store.path)
+    log.info("model %s (weights %s), store %s", settings.model, pipeline.model_id, store.where)
     app.state.services.planner.warm_up()
     sweeper = asyncio.create_task(_purge_expired(store))
     try:
@@ -108,9 +104,10 @@ async def _lifespan(app: FastAPI) -> AsyncIterator[None]:
         with contextlib.suppress(asyncio.CancelledError):
             await sweeper
         await anyio.to_thread.run_sync(app.state.services.planner.close)
+        store.close()
 
 
-async def _purge_expired(store: SessionStore) -> None:
+async def _purge_expired(store: Store) -> None:
     interval = min(PURGE_INTERVAL_S, store.ttl_s)
     while True:
         await asyncio.sleep(interval)

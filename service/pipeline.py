@@ -19,7 +19,7 @@ from completion.grid import VoxelGrid
 from completion.mesh import grid_to_mesh
 from completion.stream import Completion, CompletionStream, ViewResult
 from service.inputs import DecodedView, InputError
-from service.sessions import ConcurrentUpdate, SessionRecord, SessionStore
+from service.sessions import ConcurrentUpdate, SessionRecord, Store
 
 #: How often a view is re-applied when another process changed the session meanwhile.
 UPDATE_ATTEMPTS = 5
@@ -59,7 +59,7 @@ class Pipeline:
     def __init__(
         self,
         model: torch.nn.Module,
-        store: SessionStore,
+        store: Store,
         *,
         model_name: str,
         max_views: int | None = None,
@@ -88,6 +88,10 @@ class Pipeline:
                 object_seen=stream.seen,
             )
             return session_id, result
+        with self.store.exclusive(session_id):
+            return session_id, self._apply(session_id, view)
+
+    def _apply(self, session_id: str, view: DecodedView) -> ViewResult:
         for _ in range(UPDATE_ATTEMPTS):
             record = self.store.get(session_id)
             if self.max_views is not None and record.views >= self.max_views:
@@ -107,7 +111,7 @@ class Pipeline:
                 )
             except ConcurrentUpdate:
                 continue  # another process applied a view first: apply ours on top of it
-            return session_id, result
+            return result
         raise ConcurrentUpdate(
             f"session {session_id!r} kept changing while this view was applied; send it again"
         )

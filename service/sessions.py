@@ -1,8 +1,13 @@
-"""The session store: one SQLite row per session, written on every view (DESIGN §9).
+"""The session store: one interface, two engines (DESIGN §9).
 
-A row holds the whole ``CompletionStream`` state (model memory, current grid, latest logits,
+:class:`Store` is what the pipeline uses. :class:`SessionStore` keeps sessions in one SQLite file
+(the embedded default, one row per session); :class:`service.redis_store.RedisSessionStore` keeps
+them in Redis so that several replicas share them (``GRASP_STORE_URL``). :func:`open_store`
+picks one from the settings.
+
+A session holds the whole ``CompletionStream`` state (model memory, current grid, latest logits,
 counters: a few hundred kB, constant in the number of views), so a server killed at any moment
-and restarted on the same file continues every stream exactly. SQLite runs in WAL mode; a
+and restarted on the same store continues every stream exactly. SQLite runs in WAL mode; a
 committed view survives a killed process.
 
 Writes are compare-and-swap on the view count, so two writers (threads or processes) can never
@@ -16,10 +21,14 @@ import asyncio
 import logging
 import sqlite3
 import time
-from collections.abc import AsyncIterator, Callable
-from contextlib import asynccontextmanager, closing
+from collections.abc import AsyncIterator, Callable, Iterator
+from contextlib import asynccontextmanager, closing, contextmanager
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from service.settings import Settings
 
 log = logging.getLogger(__name__)
 
@@ -64,7 +73,88 @@ class SessionRecord:
 _EXPIRED = "((object_seen = 1 AND updated < ?) OR (object_seen = 0 AND updated < ?))"
 
 
-class SessionStore:
+class Store:
+    """What every session store does; thread-safe. Subclasses implement the storage."""
+
+    clock: Callable[[], float]
+
+    def __init__(self, *, max_sessions: int, ttl_s: float, unseen_ttl_s: float | None) -> None:
+        self.max_sessions = max_sessions
+        self.ttl_s = ttl_s
+        # a session that never saw an object lives this long (it cannot answer anything yet)
+        self.unseen_ttl_s = ttl_s if unseen_ttl_s is None else min(unseen_ttl_s, ttl_s)
+
+    @property
+    def where(self) -> str:
+        """Where the sessions live, for the log."""
+        raise NotImplementedError
+
+    def get(self, session_id: str) -> SessionRecord:
+        """The live session; raises SessionNotFound."""
+        raise NotImplementedError
+
+    def count(self) -> int:
+        """Live sessions."""
+        raise NotImplementedError
+
+    def create(
+        self, session_id: str, *, model: str, state: bytes, views: int, object_seen: bool
+    ) -> SessionRecord:
+        """Insert a new session; raises StoreFull when ``max_sessions`` are live."""
+        raise NotImplementedError
+
+    def update(
+        self, record: SessionRecord, *, state: bytes, views: int, object_seen: bool
+    ) -> SessionRecord:
+        """Replace the state of ``record`` if nobody changed it since it was read.
+
+        Raises ConcurrentUpdate when another writer got there first, SessionNotFound when the
+        session was deleted meanwhile.
+        """
+        raise NotImplementedError
+
+    def delete(self, session_id: str) -> bool:
+        """Delete a session; False when there was none."""
+        raise NotImplementedError
+
+    def purge_expired(self) -> int:
+        """Delete every expired session; returns how many."""
+        raise NotImplementedError
+
+    @contextmanager
+    def exclusive(self, session_id: str) -> Iterator[None]:
+        """Held while one view is applied to the session. The compare-and-swap of
+        :meth:`update` is what guarantees order; a store shared by several processes also
+        queues them here so that none has to retry."""
+        yield
+
+    def close(self) -> None:
+        """Release connections."""
+
+    def ensure_room(self) -> None:
+        """Raise StoreFull when no new session fits (a cheap check before doing any work)."""
+        if self.count() >= self.max_sessions:
+            raise self._full()
+
+    def _full(self) -> StoreFull:
+        return StoreFull(
+            f"the session store is full ({self.max_sessions} sessions): DELETE finished sessions, "
+            f"or retry once idle ones expire ({self.ttl_s:g} s after their last view)"
+        )
+
+    def ttl_of(self, record: SessionRecord) -> float:
+        """Seconds after its last view that ``record`` expires."""
+        return self.ttl_s if record.object_seen else self.unseen_ttl_s
+
+    def not_found_message(self, session_id: str) -> str:
+        return (
+            f"unknown session {session_id!r}: it does not exist, was deleted, or expired after "
+            f"{self.ttl_s:g} s without a view ({self.unseen_ttl_s:g} s while no view had shown "
+            "the object); POST /views without session_id starts a new one"
+        )
+
+
+class SessionStore(Store):
     """Sessions in one SQLite file; safe to use from many threads (a connection per call)."""
 
     def __init__(
@@ -76,28 +166,23 @@ class SessionStore:
         unseen_ttl_s: float | None = None,
         clock: Callable[[], float] = time.time,
     ) -> None:
+        super().__init__(max_sessions=max_sessions, ttl_s=ttl_s, unseen_ttl_s=unseen_ttl_s)
         self.path = Path(path)
-        self.max_sessions = max_sessions
-        self.ttl_s = ttl_s
-        # a session that never saw an object lives this long (it cannot answer anything yet)
-        self.unseen_ttl_s = ttl_s if unseen_ttl_s is None else min(unseen_ttl_s, ttl_s)
         self.clock = clock
         self.path.parent.mkdir(parents=True, exist_ok=True)
         with closing(self._connect()) as con:
+            con.execute("PRAGMA auto_vacuum=INCREMENTAL")  # lets purges give the space back
             con.execute("PRAGMA journal_mode=WAL")
             con.executescript(_SCHEMA)
+
+    @property
+    def where(self) -> str:
+        return str(self.path)
 
     def _connect(self) -> sqlite3.Connection:
         con = sqlite3.connect(self.path, timeout=30.0, isolation_level=None)
         con.execute("PRAGMA synchronous=NORMAL")  # WAL: durable against a killed process
         return con
-
-    def not_found_message(self, session_id: str) -> str:
-        return (
-            f"unknown session {session_id!r}: it does not exist, was deleted, or expired after "
-            f"{self.ttl_s:g} s without a view ({self.unseen_ttl_s:g} s while no view had shown "
-            "the object); POST /views without session_id starts a new one"
-        )
 
     # ---------------------------------------------------------------------------- reads
     def get(self, session_id: str) -> SessionRecord:
@@ -125,23 +210,8 @@ class SessionStore:
             (n,) = con.execute(query, self._limits()).fetchone()
         return int(n)
 
-    def ensure_room(self) -> None:
-        """Raise StoreFull when no new session fits (a cheap check before doing any work)."""
-        if self.count() >= self.max_sessions:
-            raise self._full()
-
-    def _full(self) -> StoreFull:
-        return StoreFull(
-            f"the session store is full ({self.max_sessions} sessions): DELETE finished sessions, "
-            f"or retry once idle ones expire ({self.ttl_s:g} s after their last view)"
-        )
-
     def _expired(self, updated: float, object_seen: bool) -> bool:
         return updated < self.clock() - (self.ttl_s if object_seen else self.unseen_ttl_s)
-
-    def ttl_of(self, record: SessionRecord) -> float:
-        """Seconds after its last view that ``record`` expires."""
-        return self.ttl_s if record.object_seen else self.unseen_ttl_s
 
     def _limits(self) -> tuple[float, float]:
         """The oldest ``updated`` still alive: for seen, then for unseen sessions."""
@@ -152,7 +222,6 @@ class SessionStore:
     def create(
         self, session_id: str, *, model: str, state: bytes, views: int, object_seen: bool
     ) -> SessionRecord:
-        """Insert a new session; raises StoreFull when ``max_sessions`` are live."""
         now = self.clock()
         with closing(self._connect()) as con:
             con.execute("BEGIN IMMEDIATE")
@@ -175,11 +244,6 @@ class SessionStore:
     def update(
         self, record: SessionRecord, *, state: bytes, views: int, object_seen: bool
     ) -> SessionRecord:
-        """Replace the state of ``record`` if nobody changed it since it was read.
-
-        Raises ConcurrentUpdate when another writer got there first, SessionNotFound when the
-        session was deleted meanwhile.
-        """
         now = self.clock()
         with closing(self._connect()) as con:
             cursor = con.execute(
@@ -197,18 +261,31 @@ class SessionStore:
         )
 
     def delete(self, session_id: str) -> bool:
-        """Delete a session; False when there was none."""
         with closing(self._connect()) as con:
             cursor = con.execute("DELETE FROM sessions WHERE id = ?", (session_id,))
         return cursor.rowcount > 0
 
     def purge_expired(self) -> int:
-        """Delete every expired session; returns how many."""
         with closing(self._connect()) as con:
             cursor = con.execute(f"DELETE FROM sessions WHERE {_EXPIRED}", self._limits())
+            con.execute("PRAGMA incremental_vacuum")  # the file shrinks back
         if cursor.rowcount:
             log.info("purged %d expired sessions", cursor.rowcount)
         return cursor.rowcount
+
+
+def open_store(settings: Settings) -> Store:
+    """The store the settings name: Redis for ``store_url``, else the SQLite ``store_path``."""
+    limits = dict(
+        max_sessions=settings.max_sessions,
+        ttl_s=settings.session_ttl_s,
+        unseen_ttl_s=settings.unseen_session_ttl_s,
+    )
+    if settings.store_url is not None:
+        from service.redis_store import RedisSessionStore
+
+        return RedisSessionStore(settings.store_url, **limits)
+    return SessionStore(settings.store_path, **limits)
 
 
 class SessionLocks:

@@ -21,6 +21,12 @@ class Settings(BaseSettings):
     store_path: Path = Field(
         Path("grasp_store.sqlite"), description="SQLite file holding the sessions"
     )
+    store_url: str | None = Field(
+        None,
+        pattern=r"^(redis|rediss|unix)://",
+        description="redis://host:port/db puts the sessions in Redis, shared by every replica "
+        "on that URL (unset: the SQLite store_path)",
+    )
     max_sessions: int = Field(1000, ge=1, description="sessions kept at most; more get 503")
     session_ttl_s: float = Field(
         3600.0, gt=0, description="a session idle for longer than this is deleted"
