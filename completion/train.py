@@ -46,6 +46,7 @@ from torch.nn import functional as F
 
 from completion.cli import one_name
 from completion.data import generate, load_sequence, parse_conditions
+from completion.distributed import World, setup
 from completion.grid import jaccard
 from completion.model import (
     DEFAULT_CONFIGS,
@@ -161,48 +162,74 @@ def warm_start(model: CompletionModel, path: Path) -> None:
 
 
 def train(args: argparse.Namespace) -> dict:
+    """One training run; under torchrun each rank trains on its own part of the data."""
+    world, device = setup(args.device)
+    try:
+        return _train(args, world, device)
+    finally:
+        world.close()
+
+
+def _train(args: argparse.Namespace, world: World, device: torch.device) -> dict:
     torch.manual_seed(args.seed)
     np.random.seed(args.seed)
     random.seed(args.seed)
     torch.set_num_threads(args.threads)
-    device = torch.device(
-        ("cuda" if torch.cuda.is_available() else "cpu") if args.device == "auto" else args.device
-    )
     conditions = args.conditions
-    if args.train_count:
-        ensure_data(
-            args.train_dir, "train", conditions, args.train_count, args.data_seed, args.workers
-        )
-    if args.val_count:
-        ensure_data(args.val_dir, "val", conditions, args.val_count, 0, args.workers)
-    train_set = load_split(args.train_dir, conditions, "train")
-    val_set = load_split(args.val_dir, conditions, "val")
-    n_train, _, full_views = train_set["packed"].shape[:3]
+    if world.main:  # one rank generates missing shards and writes the packed caches
+        if args.train_count:
+            ensure_data(
+                args.train_dir, "train", conditions, args.train_count, args.data_seed, args.workers
+            )
+        if args.val_count:
+            ensure_data(args.val_dir, "val", conditions, args.val_count, 0, args.workers)
+        train_set = load_split(args.train_dir, conditions, "train")
+    world.barrier()
+    if not world.main:  # from the packed cache rank 0 wrote
+        train_set = load_split(args.train_dir, conditions, "train")
+    val_set = load_split(args.val_dir, conditions, "val") if world.main else None
+    n_all, _, full_views = train_set["packed"].shape[:3]
+    # each rank draws from its own part of the training sequences (all of them on one process)
+    part = np.arange(world.rank, n_all, world.size)
+    n_train = len(part)
     if args.views > full_views:
         raise ValueError(f"--views {args.views} exceeds the {full_views} views in the shards")
     if args.batch_size > n_train:
         raise ValueError(f"--batch-size {args.batch_size} exceeds the {n_train} sequences")
-    print(f"train: {n_train} sequences, val: {len(val_set['packed'])}, device {device}", flush=True)
+    if world.main:
+        ranks = f", {world.size} ranks × {n_train}" if world.distributed else ""
+        print(f"train: {n_all} sequences{ranks}, val: {len(val_set['packed'])}, device {device}",
+              flush=True)  # fmt: skip
 
     config = default_config(args.model, **args.config, seed=args.seed)
     model = build_model(config)
     if args.init_from:
         warm_start(model, args.init_from)
     model = model.to(device)
+    net = model  # what the steps call: DDP averages the gradients over the ranks
+    if world.distributed:
+        net = torch.nn.parallel.DistributedDataParallel(
+            model, device_ids=[device.index] if device.type == "cuda" else None
+        )
     opt = torch.optim.Adam(model.parameters(), lr=args.lr)
     run_dir = args.run_dir or Path("runs") / args.out.stem
     run_dir.mkdir(parents=True, exist_ok=True)
     last = run_dir / "last.pt"
-    gen = torch.Generator().manual_seed(args.seed)
+    gen = torch.Generator().manual_seed(args.seed + 1_000_003 * world.rank)
     step, best, history, elapsed_before, skipped = 0, -1.0, [], 0.0, 0
     if args.resume and last.is_file():
         payload = read_checkpoint(last)
         model.load_state_dict(payload["state_dict"])
         opt.load_state_dict(payload["optimizer"])
-        gen.set_state(payload["generator"])
+        generators = payload.get("generators") or [payload["generator"]]
+        if len(generators) != world.size:
+            raise ValueError(f"{last} was written by {len(generators)} rank(s); resume it with "
+                             f"the same number, not {world.size}")
+        gen.set_state(generators[world.rank])
         step, best, history = payload["step"], payload["best"], payload["history"]
         elapsed_before, skipped = payload["wall_s"], payload["skipped"]
-        print(f"resumed from {last} at step {step}", flush=True)
+        if world.main:
+            print(f"resumed from {last} at step {step}", flush=True)
 
     from tqdm import tqdm
 
@@ -210,7 +237,8 @@ def train(args: argparse.Namespace) -> dict:
     tic = time.perf_counter()
     budget_s = args.minutes * 60 if args.minutes else float("inf")
     autocast = torch.autocast(device.type, dtype=torch.bfloat16, enabled=args.precision == "bf16")
-    bar = tqdm(total=args.steps, initial=step, desc=args.model, unit="step", disable=args.quiet)
+    bar = tqdm(total=args.steps, initial=step, desc=args.model, unit="step",
+               disable=args.quiet or not world.main)  # fmt: skip
     loss = torch.zeros(())
     model.train()
 
@@ -218,32 +246,22 @@ def train(args: argparse.Namespace) -> dict:
         return elapsed_before + time.perf_counter() - tic
 
     def checkpoint() -> None:
+        """Rank 0 validates and writes; every rank hands it its sampler state first."""
         nonlocal best
-        scores = validate(model, val_set)
-        mean = scores["0.50"]["mean"]
-        epochs = step * args.batch_size / n_train
-        last_loss = float(loss.detach())
-        history.append({"step": step, "epochs": round(epochs, 3), "val_jaccard": mean,
-                        "loss": last_loss, "skipped": skipped, "wall_s": round(wall(), 1)})
-        print(f"step {step} ({epochs:.2f} epochs) loss {last_loss:.4f} val Jaccard {mean:.4f} "
-              f"({wall() / 60:.1f} min)", flush=True)
-        if mean > best:
-            best = mean
-            save_checkpoint(
-                copy.deepcopy(model).half().cpu(), args.out, name=args.out.stem, threshold=0.5,
-                views=args.views, conditions=conditions, val=scores, epoch=round(epochs, 3),
-                step=step, wall_s=wall(), device=str(device), train_sequences=n_train,
-                precision=args.precision, init_from=str(args.init_from or ""),
-                command=args.command,
-            )
-        save_checkpoint(model, last, optimizer=opt.state_dict(), generator=gen.get_state(),
-                        step=step, best=best, history=history, wall_s=wall(), skipped=skipped)
+        generators = world.gather(gen.get_state())
+        if world.main:
+            best = _validate_and_save(args, model, opt, val_set, generators, step=step, best=best,
+                                      history=history, wall_s=wall(), skipped=skipped, loss=loss,
+                                      epochs=step * args.batch_size * world.size / n_all,
+                                      n_train=n_all, device=device, world=world)  # fmt: skip
+        world.barrier()
 
     while step < args.steps:
         if wall() - elapsed_before > budget_s:
             print(f"stopping at step {step}: --minutes {args.minutes} reached", flush=True)
             break
-        idx = torch.randint(0, n_train, (args.batch_size,), generator=gen).sort().values.numpy()
+        pick = torch.randint(0, n_train, (args.batch_size,), generator=gen).sort().values.numpy()
+        idx = part[pick]
         first = int(torch.randint(0, full_views - args.views + 1, (1,), generator=gen))
         x, y = unpack(train_set["packed"][idx, :, first : first + args.views])
         if args.augment:
@@ -256,13 +274,13 @@ def train(args: argparse.Namespace) -> dict:
         for group in opt.param_groups:  # cosine decay to a tenth over the step budget
             group["lr"] = args.lr * (0.1 + 0.45 * (1 + math.cos(math.pi * step / args.steps)))
         with autocast:
-            logits = model(x, local=local)
+            logits = net(x, local=local)
         loss = F.binary_cross_entropy_with_logits(logits.float(), y, pos_weight=pos_weight)
         opt.zero_grad(set_to_none=True)
         step += 1
         bar.update()
-        if not torch.isfinite(loss):
-            skipped += 1  # never let one bad batch poison the weights
+        if not world.all_true(bool(torch.isfinite(loss))):
+            skipped += 1  # never let one bad batch poison the weights (on any rank)
         else:
             loss.backward()
             torch.nn.utils.clip_grad_norm_(model.parameters(), args.clip)
@@ -280,9 +298,38 @@ def train(args: argparse.Namespace) -> dict:
         "wall_s": round(wall(), 1),
         "params": model.n_params(),
         "history": history,
+        "ranks": world.size,
     }
-    print(json.dumps(summary), flush=True)
+    if world.main:
+        print(json.dumps(summary), flush=True)
     return summary
+
+
+def _validate_and_save(args, model, opt, val_set, generators, *, step, best, history, wall_s,
+                       skipped, loss, epochs, n_train, device, world) -> float:
+    """Score the model on the validation set, write the best and the last checkpoint; returns
+    the best mean validation Jaccard so far."""
+    scores = validate(model, val_set)
+    mean = scores["0.50"]["mean"]
+    last_loss = float(loss.detach())
+    history.append({"step": step, "epochs": round(epochs, 3), "val_jaccard": mean,
+                    "loss": last_loss, "skipped": skipped, "wall_s": round(wall_s, 1)})
+    print(f"step {step} ({epochs:.2f} epochs) loss {last_loss:.4f} val Jaccard {mean:.4f} "
+          f"({wall_s / 60:.1f} min)", flush=True)
+    if mean > best:
+        best = mean
+        save_checkpoint(
+            copy.deepcopy(model).half().cpu(), args.out, name=args.out.stem, threshold=0.5,
+            views=args.views, conditions=args.conditions, val=scores, epoch=round(epochs, 3),
+            step=step, wall_s=wall_s, device=str(device), train_sequences=n_train,
+            precision=args.precision, init_from=str(args.init_from or ""),
+            command=args.command, ranks=world.size,
+        )
+    run_dir = args.run_dir or Path("runs") / args.out.stem
+    save_checkpoint(model, run_dir / "last.pt", optimizer=opt.state_dict(),
+                    generator=generators[0], generators=generators, step=step, best=best,
+                    history=history, wall_s=wall_s, skipped=skipped)
+    return best
 
 
 @torch.no_grad()

@@ -110,3 +110,33 @@ def test_per_view_reports_with_and_without_memory(shards, tmp_path, capsys):
         assert len(rows["with_memory"]) == len(rows["views_alone"]) == 3
         assert rows["with_memory"][0] == pytest.approx(rows["views_alone"][0])  # no past yet
     assert main(["per-view", str(tmp_path / "missing.pt")]) == 2
+
+
+@pytest.mark.slow
+def test_torchrun_two_processes_write_one_checkpoint_that_loads(shards, tmp_path):
+    """DistributedDataParallel on gloo: two ranks, each on its half of the sequences."""
+    import subprocess
+    import sys
+
+    out, run = tmp_path / "ddp.pt", tmp_path / "run"
+    cmd = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc-per-node", "2",
+           "-m", "completion.train", "--model", "mvp", "--views", "2",
+           "--train-dir", str(shards / "train"), "--val-dir", str(shards / "val"),
+           "--train-count", "0", "--val-count", "0", "--steps", "4", "--val-every", "2",
+           "--batch-size", "1", "--threads", "1", "--config", TINY, "--out", str(out),
+           "--run-dir", str(run), "--quiet"]  # fmt: skip
+    done = subprocess.run(cmd, capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0, done.stdout + done.stderr
+    lines = [line for line in done.stdout.splitlines() if line.startswith("{")]
+    assert len(lines) == 1  # rank 0 alone reports
+    summary = json.loads(lines[0])
+    assert summary["ranks"] == 2 and summary["steps"] == 4
+    assert "4 sequences, 2 ranks × 2" in done.stdout
+    payload = read_checkpoint(out)
+    assert payload["ranks"] == 2 and load_model(out).config.embed_dim == 16
+    assert len(read_checkpoint(run / "last.pt")["generators"]) == 2  # each rank's sampler
+    resumed = subprocess.run([*cmd[:cmd.index("--steps") + 1], "6", *cmd[cmd.index("--steps") + 2:],
+                              "--resume"], capture_output=True, text=True, timeout=600)
+    assert resumed.returncode == 0, resumed.stdout + resumed.stderr
+    assert "resumed from" in resumed.stdout and json.loads(
+        [x for x in resumed.stdout.splitlines() if x.startswith("{")][0])["steps"] == 6
