@@ -19,6 +19,7 @@ Examples::
 from __future__ import annotations
 
 import argparse
+import io
 import json
 import sys
 import time
@@ -38,17 +39,29 @@ def shard_name(condition: str, split: str, seed: int, index: int) -> str:
     return f"{condition}_{split}_s{seed}_{index:05d}.npz"
 
 
-def save_sequence(seq: Sequence, path: str | Path) -> Path:
-    """Write one sequence as a compressed shard; returns the path."""
-    path = Path(path)
+def sequence_bytes(seq: Sequence) -> bytes:
+    """One sequence as the bytes of a compressed shard."""
     arrays = {k: getattr(seq, k) for k in SHARD_KEYS}
     if seq.depth is not None:
         arrays["depth"] = seq.depth
         arrays["mask"] = seq.mask
+    buffer = io.BytesIO()
+    np.savez_compressed(buffer, meta=np.array(json.dumps(seq.meta)), **arrays)
+    return buffer.getvalue()
+
+
+def write_shard(data: bytes, path: str | Path) -> Path:
+    """Write shard bytes; never leaves a half-written shard behind. Returns the path."""
+    path = Path(path)
     tmp = path.with_name(path.name + ".tmp.npz")
-    np.savez_compressed(tmp, meta=np.array(json.dumps(seq.meta)), **arrays)
-    tmp.replace(path)  # never leave a half-written shard behind
+    tmp.write_bytes(data)
+    tmp.replace(path)
     return path
+
+
+def save_sequence(seq: Sequence, path: str | Path) -> Path:
+    """Write one sequence as a compressed shard; returns the path."""
+    return write_shard(sequence_bytes(seq), path)
 
 
 def load_sequence(path: str | Path) -> Sequence:
@@ -85,15 +98,15 @@ def load_sequence(path: str | Path) -> Sequence:
 _WORKER_RENDERER = None
 
 
-def _generate_one(job: tuple) -> str:
-    """Worker: render one sequence and write its shard (one pybullet client per process)."""
+def _render(job: tuple) -> Sequence:
+    """Worker: render one sequence (one pybullet client per process)."""
     global _WORKER_RENDERER
     from completion.render import DepthNoise, Renderer
 
-    condition, split, index, seed, out, views, noise, keep_depth = job
+    condition, split, index, seed, _, views, noise, keep_depth = job
     if _WORKER_RENDERER is None:
         _WORKER_RENDERER = Renderer()
-    seq = make_sequence(
+    return make_sequence(
         condition,
         split,
         index,
@@ -103,7 +116,21 @@ def _generate_one(job: tuple) -> str:
         noise=DepthNoise() if noise else None,
         keep_depth=keep_depth,
     )
-    return str(save_sequence(seq, Path(out) / shard_name(condition, split, seed, index)))
+
+
+def _job_path(job: tuple) -> Path:
+    condition, split, index, seed, out = job[:5]
+    return Path(out) / shard_name(condition, split, seed, index)
+
+
+def _generate_one(job: tuple) -> str:
+    """Worker: render one sequence and write its shard."""
+    return str(save_sequence(_render(job), _job_path(job)))
+
+
+def _shard_of(job: tuple) -> bytes:
+    """Ray worker: render one sequence and send its shard back (the nodes share no disk)."""
+    return sequence_bytes(_render(job))
 
 
 def generate(
@@ -119,8 +146,12 @@ def generate(
     keep_depth: bool = False,
     progress: bool = True,
     start: int = 0,
+    ray: bool = False,
 ) -> list[Path]:
-    """Generate ``count`` sequences per condition into ``out``; existing shards are kept."""
+    """Generate ``count`` sequences per condition into ``out``; existing shards are kept.
+
+    ``ray``: render on ``workers`` Ray actors (:mod:`completion.cluster`, a local runtime or
+    ``RAY_ADDRESS``) and write the shards here; the same shards as the process pool."""
     from tqdm import tqdm
 
     out = Path(out)
@@ -133,7 +164,13 @@ def generate(
             if not path.exists():
                 jobs.append((condition, split, index, seed, str(out), views, noise, keep_depth))
     bar = tqdm(total=len(jobs), desc=f"generate {split}", unit="seq", disable=not progress)
-    if workers <= 1:
+    if ray:
+        from completion.cluster import ray_map
+
+        for job, data in zip(jobs, ray_map(_shard_of, jobs, workers=workers), strict=True):
+            write_shard(data, _job_path(job))
+            bar.update()
+    elif workers <= 1:
         for job in jobs:
             _generate_one(job)
             bar.update()
@@ -204,7 +241,11 @@ def main(argv: list[str] | None = None) -> int:
     g.add_argument("--count", type=_positive, required=True, help="sequences per condition")
     g.add_argument("--seed", type=int, default=0)
     g.add_argument("--out", type=Path, required=True)
-    g.add_argument("--workers", type=_positive, default=1)
+    g.add_argument("--workers", type=_positive, default=1,
+                   help="processes (with --ray: Ray actors, one CPU each)")
+    g.add_argument("--ray", action="store_true",
+                   help="render on Ray: the cluster at RAY_ADDRESS, else a local runtime "
+                   "(pip install -e '.[cluster]')")
     g.add_argument("--views", type=_positive, default=VIEWS)
     g.add_argument("--noise", action="store_true", help="add the depth-noise model")
     g.add_argument("--keep-depth", action="store_true", help="store depth and mask images too")
@@ -224,6 +265,7 @@ def main(argv: list[str] | None = None) -> int:
             views=args.views,
             noise=args.noise,
             keep_depth=args.keep_depth,
+            ray=args.ray,
         )
         dt = time.perf_counter() - tic
         size = sum(p.stat().st_size for p in paths) / max(len(paths), 1)

@@ -120,7 +120,14 @@ def build_parser() -> argparse.ArgumentParser:
         "--workers",
         type=integer_at_least(1),
         default=None,
-        help="worker processes (default: the CPUs this process may use)",
+        help="worker processes, or Ray actors with --ray (default: the CPUs this process may "
+        "use)",
+    )
+    p.add_argument(
+        "--ray",
+        action="store_true",
+        help="run the workers on Ray: the cluster at RAY_ADDRESS, else a local runtime "
+        "(pip install -e '.[cluster]'); the same tables as without",
     )
     p.add_argument("--seed", type=int, default=0, help="one seed for scenes, samples and grasps")
     p.add_argument(
@@ -206,6 +213,7 @@ def settings_from_args(args: argparse.Namespace, parser: argparse.ArgumentParser
         seed=args.seed,
         candidates=args.candidates if args.candidates is not None else preset.candidates,
         workers=workers,
+        ray=args.ray,
         examples=not args.no_figures,
     )
 

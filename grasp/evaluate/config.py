@@ -172,6 +172,7 @@ class Settings:
     candidates: int = PRESETS["default"].candidates
     samples: int = 8192
     workers: int = 1
+    ray: bool = False  # run the workers as Ray actors (completion.cluster)
     examples: bool = True
 
     def __post_init__(self) -> None:

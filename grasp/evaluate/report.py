@@ -130,8 +130,9 @@ def markdown_timings(results: dict) -> str:
     t = results["timings_s"]
     wall, cpu = t["stages_wall_summed_over_sequences"], t["stages_cpu_summed_over_sequences"]
     workers = results["config"]["workers"]
+    kind = "Ray actor" if results["config"].get("ray") else "worker process"
     lines = [
-        f"## Timings (seconds; {workers} worker process{'es' if workers > 1 else ''})",
+        f"## Timings (seconds; {workers} {kind}{'s' if workers > 1 else ''})",
         "",
         "| stage | wall, summed over sequences | CPU, summed over sequences |",
         "|---|---|---|",

@@ -374,13 +374,21 @@ def make_jobs(settings: Settings) -> list[Job]:
 
 
 def run_jobs(settings: Settings, jobs: list[Job], *, progress: bool = True) -> list[SequenceResult]:
-    """Evaluate every job, in a process pool when ``settings.workers > 1``; results in job order."""
+    """Evaluate every job, in a process pool when ``settings.workers > 1`` (on Ray actors with
+    ``settings.ray``); results in job order, so the tables do not depend on how they ran."""
     from tqdm import tqdm
 
     bar = tqdm(total=len(jobs), desc="evaluate", unit="seq", disable=not progress)
     results: list[SequenceResult] = []
     try:
-        if settings.workers <= 1 or len(jobs) <= 1:
+        if settings.ray:
+            from completion.cluster import ray_map
+
+            for result in ray_map(_run_job, jobs, workers=settings.workers,
+                                  initializer=_init_worker, initargs=(settings,)):  # fmt: skip
+                results.append(result)
+                bar.update()
+        elif settings.workers <= 1 or len(jobs) <= 1:
             import torch
 
             threads = torch.get_num_threads()
