@@ -12,11 +12,13 @@ import logging
 import re
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
+from functools import partial
 
 import anyio.to_thread
 from anyio import CapacityLimiter
 from fastapi import FastAPI, HTTPException, Request, status
 from fastapi.exceptions import RequestValidationError
+from fastapi.openapi.utils import get_openapi
 from fastapi.responses import JSONResponse
 from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
@@ -25,10 +27,12 @@ from completion.mesh import EmptyMeshError
 from completion.stream import NoObjectError
 from service import inspector  # its data routes join `router` on import
 from service.deps import Services, token_problem
-from service.inputs import InputError
+from service.inputs import MAX_COORDINATE_M, InputError
+from service.parsing import BodyParser
 from service.pipeline import ModelMismatch, Pipeline, TooManyViews
 from service.planning import ClientGone, Planner, PlannerBusy
 from service.routes import health_router, router
+from service.schemas import ViewIn
 from service.sessions import (
     ConcurrentUpdate,
     SessionLocks,
@@ -66,7 +70,77 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.add_exception_handler(InputError, _input_error)
     app.add_exception_handler(RequestValidationError, _validation_error)
     app.add_exception_handler(StarletteHTTPException, _http_error)
+    app.openapi = partial(_openapi, app)
     return app
+
+
+def _openapi(app: FastAPI) -> dict:
+    """FastAPI's document, plus the ViewIn schema that ``POST /views`` refers to (the route
+    parses its body itself, off the event loop)."""
+    if app.openapi_schema is None:
+        document = get_openapi(
+            title=app.title,
+            version=app.version,
+            summary=app.summary,
+            routes=app.routes,
+        )
+        components = document.setdefault("components", {})
+        schemas = components.setdefault("schemas", {})
+        view = ViewIn.model_json_schema(ref_template="#/components/schemas/{model}")
+        schemas.update(view.pop("$defs", {}))
+        schemas["ViewIn"] = _view_schema(view, app.state.settings)
+        _match_settings(document, app.state.settings)
+        app.openapi_schema = document
+    return app.openapi_schema
+
+
+def _null(*names: str) -> dict:
+    return {name: {"type": "null"} for name in names}
+
+
+def _view_schema(view: dict, settings: Settings) -> dict:
+    """ViewIn's own model validator, written as JSON Schema: exactly one of points, depth with
+    intrinsics (and an optional mask), or grid; absent and null are the same. Points: at most
+    ``max_points``, within ±MAX_COORDINATE_M, in front of the camera (z > 0)."""
+    view["oneOf"] = [
+        {"required": ["points"], "properties": {"points": {"type": "array"}}
+         | _null("depth", "intrinsics", "mask", "grid")},
+        {"required": ["depth", "intrinsics"],
+         "properties": {"depth": {"type": "object"}, "intrinsics": {"type": "object"}}
+         | _null("points", "grid")},
+        {"required": ["grid"], "properties": {"grid": {"type": "object"}}
+         | _null("points", "depth", "intrinsics", "mask")},
+    ]  # fmt: skip
+    coordinate = {"type": "number", "minimum": -MAX_COORDINATE_M, "maximum": MAX_COORDINATE_M}
+    point = {
+        "type": "array",
+        "prefixItems": [coordinate, coordinate, coordinate | {"exclusiveMinimum": 0}],
+        "items": False,
+        "minItems": 3,
+        "maxItems": 3,
+    }
+    for option in view["properties"]["points"].get("anyOf", []):
+        if option.get("type") == "array":
+            option["items"] = point
+            option["maxItems"] = settings.max_points
+    return view
+
+
+def _match_settings(document: dict, settings: Settings) -> None:
+    """What the document says depends on this server's settings: the bearer scheme only when
+    a token is required; n_candidates up to GRASP_MAX_CANDIDATES."""
+    for methods in document.get("paths", {}).values():
+        for operation in methods.values():
+            if settings.token is None:
+                operation.pop("security", None)
+            for parameter in operation.get("parameters", []):
+                if parameter["name"] != "n_candidates":
+                    continue
+                for option in parameter["schema"].get("anyOf", [parameter["schema"]]):
+                    if option.get("type") == "integer":
+                        option["maximum"] = settings.max_candidates
+    if settings.token is None:
+        document.get("components", {}).pop("securitySchemes", None)
 
 
 @asynccontextmanager
@@ -93,6 +167,11 @@ async def _lifespan(app: FastAPI) -> AsyncIterator[None]:
             cache=settings.plan_cache,
         ),
         locks=SessionLocks(),
+        parser=BodyParser(
+            settings.inference_workers,
+            max_image_pixels=settings.max_image_pixels,
+            max_points=settings.max_points,
+        ),
     )
     log.info("model %s (weights %s), store %s", settings.model, pipeline.model_id, store.where)
     app.state.services.planner.warm_up()
@@ -104,6 +183,7 @@ async def _lifespan(app: FastAPI) -> AsyncIterator[None]:
         with contextlib.suppress(asyncio.CancelledError):
             await sweeper
         await anyio.to_thread.run_sync(app.state.services.planner.close)
+        app.state.services.parser.close()
         store.close()
 
 
@@ -161,6 +241,7 @@ BODY_EXPECTED = (
 _BODY_HINTS = {
     "json_invalid": "the body is not valid JSON: " + BODY_EXPECTED,
     "model_attributes_type": "the body is not a JSON object: " + BODY_EXPECTED,
+    "model_type": "the body is not a JSON object: " + BODY_EXPECTED,
 }
 
 
@@ -179,13 +260,29 @@ async def _validation_error(request: Request, exc: RequestValidationError) -> JS
 
 
 async def _http_error(request: Request, exc: StarletteHTTPException) -> JSONResponse:
-    """Starlette's own errors; its bare 400 for an undecodable body says what was expected."""
+    """Starlette's own errors; its bare 400 for an undecodable body says what was expected, and
+    a 405 lists every method of the path (Starlette names only the first route's)."""
     detail = exc.detail
+    headers = exc.headers
     if exc.status_code == status.HTTP_400_BAD_REQUEST and detail == (
         "There was an error parsing the body"
     ):
         detail = "the body could not be decoded: " + BODY_EXPECTED
-    return JSONResponse({"detail": detail}, status_code=exc.status_code, headers=exc.headers)
+    if exc.status_code == status.HTTP_405_METHOD_NOT_ALLOWED:
+        methods = _methods_of(request.app, request.url.path)
+        if methods:
+            headers = (headers or {}) | {"Allow": ", ".join(methods)}
+    return JSONResponse({"detail": detail}, status_code=exc.status_code, headers=headers)
+
+
+def _methods_of(app: FastAPI, path: str) -> list[str]:
+    """Every method the API document gives ``path`` (upper case, sorted)."""
+    methods: set[str] = set()
+    for template, operations in app.openapi().get("paths", {}).items():
+        pattern = re.sub(r"\\{[^/]+?\\}", "[^/]+", re.escape(template))
+        if re.fullmatch(pattern, path):
+            methods |= {m.upper() for m in operations}
+    return sorted(methods)
 
 
 #: Paths that need no token: liveness, the API documents, the inspector page and its assets.

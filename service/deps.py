@@ -13,6 +13,7 @@ from anyio import CapacityLimiter
 from fastapi import Depends, HTTPException, Request, status
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 
+from service.parsing import BodyParser
 from service.pipeline import Pipeline
 from service.planning import Planner
 from service.sessions import SessionLocks
@@ -30,6 +31,7 @@ class Services:
     inference: CapacityLimiter  # model steps and completions running at once
     planner: Planner  # grasp plans, in worker processes or threads
     locks: SessionLocks  # POST /views of one session, one after the other
+    parser: BodyParser  # POST /views bodies, parsed off the event loop
 
     async def infer(self, fn: Callable[..., T], *args, **kwargs) -> T:
         """Run blocking model work in a worker thread, at most ``inference_workers`` at once."""

@@ -7,6 +7,7 @@ errors are raised as exceptions that :mod:`service.app` turns into 4xx answers.
 from __future__ import annotations
 
 import base64
+import re
 import time
 from datetime import UTC, datetime
 from typing import Annotated
@@ -18,7 +19,8 @@ from completion.mesh import MeshFormat, export_mesh
 from grasp.planner import SupportPlane, hand_primitives
 from hands.barrett import JOINT_NAMES
 from service.deps import Services, ServicesDep, require_token
-from service.inputs import InputError, decode_view
+from service.inputs import InputError
+from service.parsing import ParsedView
 from service.pipeline import Snapshot
 from service.schemas import (
     ContactOut,
@@ -29,7 +31,6 @@ from service.schemas import (
     OccupancyOut,
     PrimitiveOut,
     SessionOut,
-    ViewIn,
     ViewOut,
 )
 from service.sessions import SessionNotFound
@@ -41,6 +42,7 @@ MEDIA_TYPES = {
     "glb": "model/gltf-binary",
 }
 _WHY = {
+    400: "the body could not be decoded as text",
     401: "missing or wrong bearer token (when GRASP_TOKEN is set)",
     404: "unknown or expired session",
     409: "the session cannot answer yet (no object seen, empty completion, other model)",
@@ -59,19 +61,40 @@ health_router = APIRouter()
 PathId = Annotated[str, Path(min_length=1, max_length=128, description="from POST /views")]
 
 
-@router.post("/views", response_model=ViewOut, responses=_errors(404, 409, 503))
-async def post_view(body: ViewIn, services: ServicesDep) -> ViewOut:
-    """Add one view to a session (a new one when ``session_id`` is absent)."""
-    s = services.settings
-    view = await services.infer(
-        decode_view, body, max_image_pixels=s.max_image_pixels, max_points=s.max_points
-    )
-    if body.session_id is None:
+async def view_body(request: Request, services: ServicesDep) -> ParsedView:
+    """The body, read under the size limit, then parsed, validated and decoded off the event
+    loop (:mod:`service.parsing`)."""
+    raw = await request.body()
+    return await services.parser.parse(raw, request.headers.get("content-type"))
+
+
+#: ``POST /views`` reads its body itself; the document still shows it as a ViewIn.
+_VIEW_BODY = {
+    "requestBody": {
+        "required": True,
+        "content": {"application/json": {"schema": {"$ref": "#/components/schemas/ViewIn"}}},
+    }
+}
+
+
+@router.post(
+    "/views",
+    response_model=ViewOut,
+    responses=_errors(400, 404, 409, 503),
+    openapi_extra=_VIEW_BODY,
+)
+async def post_view(
+    parsed: Annotated[ParsedView, Depends(view_body)], services: ServicesDep
+) -> ViewOut:
+    """Add one view to a session (a new one when ``session_id`` is absent). The body is a
+    ``ViewIn``: exactly one of ``points``, ``depth`` with ``intrinsics``, or ``grid``."""
+    view, session_id = parsed.view, parsed.session_id
+    if session_id is None:
         session_id, result = await services.infer(services.pipeline.add_view, None, view)
     else:
-        async with services.locks.hold(body.session_id):
+        async with services.locks.hold(session_id):
             session_id, result = await services.infer(
-                services.pipeline.add_view, body.session_id, view
+                services.pipeline.add_view, session_id, view
             )
     return ViewOut(
         session_id=session_id,
@@ -85,14 +108,21 @@ TopK = Annotated[int, Query(ge=1, le=64, description="grasps returned, best firs
 NCandidates = Annotated[
     int | None, Query(ge=1, description="candidates tried (default GRASP_N_CANDIDATES)")
 ]
+_DECIMAL = r"[-+]?\d{1,6}(\.\d{1,6})?"
+#: Four decimal numbers nx,ny,nz,d; the lookahead asks for a non-zero digit in the normal.
+SUPPORT_PLANE_PATTERN = re.compile(
+    rf"^(?=[^,]*[1-9]|[^,]*,[^,]*[1-9]|[^,]*,[^,]*,[^,]*[1-9])"
+    rf"{_DECIMAL},{_DECIMAL},{_DECIMAL},{_DECIMAL}$"
+)
 SupportPlaneQuery = Annotated[
     str | None,
     Query(
         max_length=200,
         description="the surface the object rests on, 'nx,ny,nz,d' in the world frame "
-        "(n·x + d = 0, n pointing up): no approach from below it, no hand below it. Needs "
-        "camera poses on the views.",
+        "(n·x + d = 0, n pointing up, not zero; decimals, metres): no approach from below it, "
+        "no hand below it. Needs camera poses on the views.",
         examples=["0,0,1,0"],
+        json_schema_extra={"pattern": SUPPORT_PLANE_PATTERN.pattern},
     ),
 ]
 
@@ -132,6 +162,13 @@ async def plan_session(
         )
     plane = None
     if support_plane is not None:
+        if not SUPPORT_PLANE_PATTERN.match(support_plane):
+            raise InputError(
+                ("query", "support_plane"),
+                "support_plane is four decimal numbers nx,ny,nz,d without spaces or exponents "
+                f"(at most 6 digits each side of the point), the normal not zero; got "
+                f"{support_plane[:80]!r}",
+            )
         try:
             plane = SupportPlane.parse(support_plane)
         except ValueError as exc:
