@@ -263,12 +263,13 @@ class SessionStore(Store):
     def delete(self, session_id: str) -> bool:
         with closing(self._connect()) as con:
             cursor = con.execute("DELETE FROM sessions WHERE id = ?", (session_id,))
+            con.executescript("PRAGMA incremental_vacuum;")  # (executescript steps it to the end)
         return cursor.rowcount > 0
 
     def purge_expired(self) -> int:
         with closing(self._connect()) as con:
             cursor = con.execute(f"DELETE FROM sessions WHERE {_EXPIRED}", self._limits())
-            con.execute("PRAGMA incremental_vacuum")  # the file shrinks back
+            con.executescript("PRAGMA incremental_vacuum;")  # the file shrinks back
         if cursor.rowcount:
             log.info("purged %d expired sessions", cursor.rowcount)
         return cursor.rowcount

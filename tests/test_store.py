@@ -6,6 +6,7 @@ prefix. The two-replica tests run two ``python -m service`` processes on one Red
 
 from __future__ import annotations
 
+import sqlite3
 import threading
 import time
 import uuid
@@ -86,6 +87,23 @@ def test_sessions_expire_unseen_ones_sooner(make_store):
         store.get("unseen")
     store.purge_expired()
     assert store.get("seen").views == 1 and store.count() == 1
+
+
+def test_sqlite_file_shrinks_after_deletes(tmp_path):
+    path = tmp_path / "store.sqlite"
+    store = SessionStore(path, max_sessions=100, ttl_s=60.0)
+    state = np.random.default_rng(0).bytes(200_000)
+    for k in range(40):
+        store.create(f"s{k}", model="m", state=state, views=1, object_seen=True)
+    with sqlite3.connect(path) as con:  # fold the WAL into the file, as a quiet server does
+        con.execute("PRAGMA wal_checkpoint(TRUNCATE)")
+    full = path.stat().st_size
+    assert full > 40 * 200_000
+    for k in range(40):
+        assert store.delete(f"s{k}")
+    with sqlite3.connect(path) as con:
+        con.execute("PRAGMA wal_checkpoint(TRUNCATE)")
+    assert path.stat().st_size < full / 10
 
 
 def test_redis_expiry_is_redis_ttl(redis_url):
