@@ -108,7 +108,7 @@ TopK = Annotated[int, Query(ge=1, le=64, description="grasps returned, best firs
 NCandidates = Annotated[
     int | None, Query(ge=1, description="candidates tried (default GRASP_N_CANDIDATES)")
 ]
-_DECIMAL = r"[-+]?\d{1,6}(\.\d{1,6})?"
+_DECIMAL = r"[-+]?\d{1,9}(\.\d{1,20})?([eE][-+]?\d{1,3})?"
 #: Four decimal numbers nx,ny,nz,d; the lookahead asks for a non-zero digit in the normal.
 SUPPORT_PLANE_PATTERN = re.compile(
     rf"^(?=[^,]*[1-9]|[^,]*,[^,]*[1-9]|[^,]*,[^,]*,[^,]*[1-9])"
@@ -119,7 +119,7 @@ SupportPlaneQuery = Annotated[
     Query(
         max_length=200,
         description="the surface the object rests on, 'nx,ny,nz,d' in the world frame "
-        "(n·x + d = 0, n pointing up, not zero; decimals, metres): no approach from below it, "
+        "(n·x + d = 0, n pointing up, not zero; metres): no approach from below it, "
         "no hand below it. Needs camera poses on the views.",
         examples=["0,0,1,0"],
         json_schema_extra={"pattern": SUPPORT_PLANE_PATTERN.pattern},
@@ -165,8 +165,8 @@ async def plan_session(
         if not SUPPORT_PLANE_PATTERN.match(support_plane):
             raise InputError(
                 ("query", "support_plane"),
-                "support_plane is four decimal numbers nx,ny,nz,d without spaces or exponents "
-                f"(at most 6 digits each side of the point), the normal not zero; got "
+                "support_plane is four numbers nx,ny,nz,d without spaces (like 0,0,1,-0.25 or "
+                f"1e-3; at most 9 digits before the point), the normal not zero; got "
                 f"{support_plane[:80]!r}",
             )
         try:

@@ -804,19 +804,20 @@ def test_restart_after_sigkill_continues_the_stream(tmp_path, tiny_model, scene)
     np.testing.assert_array_equal(resumed.camera_to_world, scene.camera_to_world[11])
 
 
-@pytest.mark.slow
-def test_concurrent_views_to_one_session_are_all_applied(server, tiny_model):
-    threads, per_thread = 8, 3
+def post_concurrently(urls: list[str], threads: int, per_thread: int) -> tuple[str, list[dict]]:
+    """Start a session, then let ``threads`` clients (client t talks to ``urls[t % len]``) post
+    ``per_thread`` views each, all at once. Checks that every view was answered with its own
+    index; returns the session and the bodies in the order the server applied them."""
     bodies = {
         (t, i): points_view(seed=100 * t + i) for t in range(threads) for i in range(per_thread)
     }
-    sid, _ = post_views(server.url, [points_view(seed=999)])
+    sid, _ = post_views(urls[0], [points_view(seed=999)])
     answers: dict[int, tuple[int, int]] = {}
     errors: list[str] = []
     start = threading.Barrier(threads)
 
     def worker(t: int) -> None:
-        with httpx.Client(base_url=server.url, timeout=120) as client:
+        with httpx.Client(base_url=urls[t % len(urls)], timeout=120) as client:
             start.wait()
             for i in range(per_thread):
                 r = client.post("/views", json=bodies[t, i] | {"session_id": sid})
@@ -833,9 +834,14 @@ def test_concurrent_views_to_one_session_are_all_applied(server, tiny_model):
     assert not errors
     n = threads * per_thread + 1
     assert sorted(answers) == list(range(1, n))  # each index exactly once (0 was the first view)
-    assert httpx.get(f"{server.url}/sessions/{sid}").json()["views"] == n
+    return sid, [points_view(seed=999)] + [bodies[answers[k]] for k in range(1, n)]
+
+
+@pytest.mark.slow
+def test_concurrent_views_to_one_session_are_all_applied(server, tiny_model):
+    sid, order = post_concurrently([server.url], threads=8, per_thread=3)
+    assert httpx.get(f"{server.url}/sessions/{sid}").json()["views"] == len(order)
     # The stored state is the sequential replay of the views in the order they were applied.
-    order = [points_view(seed=999)] + [bodies[answers[k]] for k in range(1, n)]
     stored = stored_state(server.store, sid)
     assert stored == reference(tiny_model, order).to_bytes()
 

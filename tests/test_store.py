@@ -15,7 +15,7 @@ import httpx
 import numpy as np
 import pytest
 import redis
-from test_service import Server, points_view, post_views, reference
+from test_service import Server, post_concurrently, post_views, reference
 
 from completion.model import load_model
 from completion.stream import CompletionStream
@@ -208,33 +208,7 @@ def test_views_alternate_between_two_replicas(replicas, scene):
 @pytest.mark.slow
 def test_concurrent_views_through_both_replicas_are_serialised(replicas):
     model, servers, r = replicas
-    threads, per_thread = 6, 3
-    bodies = {(t, i): points_view(seed=100 * t + i) for t in range(threads)
-              for i in range(per_thread)}  # fmt: skip
-    sid, _ = post_views(servers[0].url, [points_view(seed=999)])
-    answers: dict[int, tuple[int, int]] = {}
-    errors: list[str] = []
-    start = threading.Barrier(threads)
-
-    def worker(t: int) -> None:
-        with httpx.Client(base_url=servers[t % 2].url, timeout=120) as client:
-            start.wait()
-            for i in range(per_thread):
-                resp = client.post("/views", json=bodies[t, i] | {"session_id": sid})
-                if resp.status_code != 200:
-                    errors.append(resp.text)
-                    continue
-                answers[resp.json()["view_index"]] = (t, i)
-
-    pool = [threading.Thread(target=worker, args=(t,)) for t in range(threads)]
-    for th in pool:
-        th.start()
-    for th in pool:
-        th.join()
-    assert not errors
-    n = threads * per_thread + 1
-    assert sorted(answers) == list(range(1, n))  # each index exactly once
-    order = [points_view(seed=999)] + [bodies[answers[k]] for k in range(1, n)]
+    sid, order = post_concurrently([s.url for s in servers], threads=6, per_thread=3)
     assert stored(r, sid) == reference(model, order).to_bytes()  # the sequential replay
     stream = CompletionStream.from_bytes(load_model(model), stored(r, sid))
-    assert stream.views == n and np.isfinite(stream.completion().probabilities).all()
+    assert stream.views == len(order) and np.isfinite(stream.completion().probabilities).all()
