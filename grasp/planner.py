@@ -41,6 +41,21 @@ from hands.barrett import JOINT_NAMES, HandKinematics
 DEFAULT_SPREADS_DEG: tuple[float, ...] = (0.0, 30.0, 60.0, 90.0)
 #: The palm starts this far outside the object's bounding sphere (metres).
 STANDOFF_M = 0.02
+#: Largest object the planner tries, as its bounding-box diagonal (metres). The open BH8-282
+#: spans about 0.3 m; a shape metres across is not something it can close on, and approaching
+#: it in 10 mm steps would take minutes.
+MAX_OBJECT_DIAGONAL_M = 1.0
+
+
+def too_large(mesh: trimesh.Trimesh) -> str | None:
+    """Why the hand cannot grasp ``mesh`` at all (None when it may)."""
+    diagonal = float(np.linalg.norm(mesh.extents))
+    if diagonal <= MAX_OBJECT_DIAGONAL_M:
+        return None
+    return (
+        f"the shape is {diagonal:.3g} m across (bounding-box diagonal); the BarrettHand grasps "
+        f"objects up to {MAX_OBJECT_DIAGONAL_M:g} m"
+    )
 #: Two grasps are the same grasp when their palm poses are closer than both of these.
 DISTINCT_M = 0.01
 DISTINCT_DEG = 10.0
@@ -280,6 +295,9 @@ def plan(
     scene = mesh if isinstance(mesh, CollisionScene) else CollisionScene(check_mesh(mesh))
     if top_k is not None and top_k < 1:
         raise ValueError(f"top_k must be >= 1 or None, got {top_k}")
+    problem = too_large(scene.mesh)
+    if problem is not None:
+        raise ValueError(problem)
     if support_plane is None:
         candidates = candidate_poses(
             scene.mesh, n_candidates=n_candidates, seed=seed, spreads_deg=spreads_deg

@@ -16,7 +16,7 @@ import numpy as np
 from fastapi import APIRouter, Depends, Path, Query, Request, Response, status
 
 from completion.mesh import MeshFormat, export_mesh
-from grasp.planner import SupportPlane, hand_primitives
+from grasp.planner import SupportPlane, hand_primitives, too_large
 from hands.barrett import JOINT_NAMES
 from service.deps import Services, ServicesDep, require_token
 from service.inputs import InputError
@@ -182,6 +182,12 @@ async def plan_session(
                 "(the latest view came without one)",
             )
         plane = plane.transformed(snapshot.camera_to_world)  # into the latest camera frame
+    problem = too_large(mesh)
+    if problem is not None:  # nothing the hand can close on: say so, plan nothing
+        timing |= {"planning": 0.0, "waiting": 0.0, "total": (time.perf_counter() - start) * 1e3}
+        out = _grasps_out(snapshot, [], timing, plane)
+        out.reason = problem
+        return out, mesh, snapshot
     results, seconds, cached = await services.planner.plan(
         mesh.vertices, mesh.faces, n_candidates=n, seed=s.plan_seed, top_k=top_k,
         support_plane=plane, gone=request.is_disconnected,

@@ -20,6 +20,15 @@ from completion.cluster import ray_map
 REPO = Path(__file__).resolve().parents[1]
 
 
+@pytest.fixture(autouse=True, scope="module")
+def _ray_down_afterwards():
+    """The in-process tests start a local Ray runtime; stop it before the other test files."""
+    yield
+    import ray
+
+    ray.shutdown()
+
+
 def test_ray_map_keeps_the_order():
     items = [(-1) ** k * k for k in range(12)]  # builtins: a worker imports nothing of the tests
     assert list(ray_map(abs, items, workers=2)) == [abs(x) for x in items]

@@ -121,6 +121,8 @@ def test_bad_input_raises(brick):
         candidate_poses(brick, spreads_deg=(0.0, 200.0))
     with pytest.raises(ValueError, match="Trimesh"):
         plan("brick.obj")  # type: ignore[arg-type]
+    with pytest.raises(ValueError, match=r"the shape is 3.46 m across"):
+        plan(trimesh.creation.box((2.0, 2.0, 2.0)), n_candidates=4)
 
 
 def _angle_deg(a: np.ndarray, b: np.ndarray) -> float:

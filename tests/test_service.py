@@ -292,6 +292,18 @@ def test_grasp_on_a_support_plane(client, scene):
         assert plane.height(hand_points(hand)).min() >= -1e-6
 
 
+def test_a_shape_metres_across_is_answered_without_planning(client):
+    """Points spread over a kilometre (valid input) complete to a shape no hand can close on:
+    the answer says so at once instead of approaching it in 10 mm steps for minutes."""
+    far = {"points": [[-900.0, -900.0, 1.0], [900.0, 900.0, 999.0], [0.0, 0.0, 500.0]]}
+    sid = new_session(client, far)
+    t0 = time.perf_counter()
+    r = client.get("/grasp", params={"session_id": sid, "n_candidates": 16})
+    assert r.status_code == 200 and r.json()["grasps"] == []
+    assert "the BarrettHand grasps objects up to 1 m" in r.json()["reason"]
+    assert time.perf_counter() - t0 < 30
+
+
 @pytest.mark.parametrize("value", ["0,0,1", "up", "0,0,0,1"])
 def test_bad_support_plane_is_422(client, value):
     sid = new_session(client)
