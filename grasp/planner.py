@@ -42,9 +42,9 @@ DEFAULT_SPREADS_DEG: tuple[float, ...] = (0.0, 30.0, 60.0, 90.0)
 #: The palm starts this far outside the object's bounding sphere (metres).
 STANDOFF_M = 0.02
 #: Largest object the planner tries, as its bounding-box diagonal (metres). The open BH8-282
-#: spans about 0.3 m; a shape metres across is not something it can close on, and approaching
-#: it in 10 mm steps would take minutes.
-MAX_OBJECT_DIAGONAL_M = 1.0
+#: spans about 0.3 m, so bigger shapes come back as failures (no force closure); one several
+#: metres across is refused outright: approaching it in 10 mm steps would take minutes.
+MAX_OBJECT_DIAGONAL_M = 2.0
 
 
 def too_large(mesh: trimesh.Trimesh) -> str | None:
@@ -53,8 +53,8 @@ def too_large(mesh: trimesh.Trimesh) -> str | None:
     if diagonal <= MAX_OBJECT_DIAGONAL_M:
         return None
     return (
-        f"the shape is {diagonal:.3g} m across (bounding-box diagonal); the BarrettHand grasps "
-        f"objects up to {MAX_OBJECT_DIAGONAL_M:g} m"
+        f"the shape is {diagonal:.3g} m across (bounding-box diagonal), far beyond the "
+        f"BarrettHand's reach; the planner tries shapes up to {MAX_OBJECT_DIAGONAL_M:g} m"
     )
 #: Two grasps are the same grasp when their palm poses are closer than both of these.
 DISTINCT_M = 0.01

@@ -51,10 +51,13 @@ def mount(app) -> None:
 @page_router.get(
     "/sessions/{session_id}/view",
     response_class=FileResponse,
-    responses={200: {"content": {"text/html": {}}, "description": "the inspector page"}},
+    responses={200: {"content": {"text/html": {}}, "description": "the inspector page"}}
+    | _errors(404),
 )
-async def view_page(session_id: PathId) -> FileResponse:
-    """The inspector page of a session (open it in a browser; ?top_k=…&support_plane=…)."""
+async def view_page(session_id: PathId, services: ServicesDep) -> FileResponse:
+    """The inspector page of a session (open it in a browser; ?top_k=…&support_plane=…);
+    404 for a session that does not exist (any more)."""
+    await services.io(services.pipeline.store.get, session_id)
     return FileResponse(STATIC / "index.html", media_type="text/html")
 
 

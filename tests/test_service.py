@@ -300,7 +300,7 @@ def test_a_shape_metres_across_is_answered_without_planning(client):
     t0 = time.perf_counter()
     r = client.get("/grasp", params={"session_id": sid, "n_candidates": 16})
     assert r.status_code == 200 and r.json()["grasps"] == []
-    assert "the BarrettHand grasps objects up to 1 m" in r.json()["reason"]
+    assert "the planner tries shapes up to 2 m" in r.json()["reason"]
     assert time.perf_counter() - t0 < 30
 
 
@@ -1063,7 +1063,9 @@ def test_token_is_checked_before_the_body_is_read(tmp_path, tiny_model):
         ok = {"Authorization": "Bearer s3cret"}
         r = client.post("/views", content=b"{not json", headers=ok | json_type)
         assert r.status_code == 422
-        assert client.get("/sessions/abc/view").status_code == 200
+        sid = client.post("/views", json=points_view(), headers=ok).json()["session_id"]
+        assert client.get(f"/sessions/{sid}/view").status_code == 200
+        assert client.get("/sessions/abc/view").status_code == 404  # public, and gone
         assert client.get("/static/inspector/inspector.js").status_code == 200
         assert client.get("/sessions/abc/observed").status_code == 401
         assert client.get("/openapi.json").status_code == 200
