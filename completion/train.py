@@ -250,9 +250,9 @@ def _train(args: argparse.Namespace, world: World, device: torch.device) -> dict
         nonlocal best
         generators = world.gather(gen.get_state())
         if world.main:
-            best = _validate_and_save(args, model, opt, val_set, generators, step=step, best=best,
-                                      history=history, wall_s=wall(), skipped=skipped, loss=loss,
-                                      epochs=step * args.batch_size * world.size / n_all,
+            best = _validate_and_save(args, model, opt, val_set, generators, last, step=step,
+                                      best=best, history=history, wall_s=wall(), skipped=skipped,
+                                      loss=loss, epochs=step * args.batch_size * world.size / n_all,
                                       n_train=n_all, device=device, world=world)  # fmt: skip
         world.barrier()
 
@@ -305,10 +305,10 @@ def _train(args: argparse.Namespace, world: World, device: torch.device) -> dict
     return summary
 
 
-def _validate_and_save(args, model, opt, val_set, generators, *, step, best, history, wall_s,
-                       skipped, loss, epochs, n_train, device, world) -> float:
-    """Score the model on the validation set, write the best and the last checkpoint; returns
-    the best mean validation Jaccard so far."""
+def _validate_and_save(args, model, opt, val_set, generators, last, *, step, best, history,
+                       wall_s, skipped, loss, epochs, n_train, device, world) -> float:
+    """Score the model on the validation set, write the best checkpoint (``args.out``) and the
+    full training state (``last``); returns the best mean validation Jaccard so far."""
     scores = validate(model, val_set)
     mean = scores["0.50"]["mean"]
     last_loss = float(loss.detach())
@@ -325,8 +325,7 @@ def _validate_and_save(args, model, opt, val_set, generators, *, step, best, his
             precision=args.precision, init_from=str(args.init_from or ""),
             command=args.command, ranks=world.size,
         )
-    run_dir = args.run_dir or Path("runs") / args.out.stem
-    save_checkpoint(model, run_dir / "last.pt", optimizer=opt.state_dict(),
+    save_checkpoint(model, last, optimizer=opt.state_dict(),
                     generator=generators[0], generators=generators, step=step, best=best,
                     history=history, wall_s=wall_s, skipped=skipped)
     return best

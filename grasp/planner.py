@@ -45,17 +45,6 @@ STANDOFF_M = 0.02
 #: spans about 0.3 m, so bigger shapes come back as failures (no force closure); one several
 #: metres across is refused outright: approaching it in 10 mm steps would take minutes.
 MAX_OBJECT_DIAGONAL_M = 2.0
-
-
-def too_large(mesh: trimesh.Trimesh) -> str | None:
-    """Why the hand cannot grasp ``mesh`` at all (None when it may)."""
-    diagonal = float(np.linalg.norm(mesh.extents))
-    if diagonal <= MAX_OBJECT_DIAGONAL_M:
-        return None
-    return (
-        f"the shape is {diagonal:.3g} m across (bounding-box diagonal), far beyond the "
-        f"BarrettHand's reach; the planner tries shapes up to {MAX_OBJECT_DIAGONAL_M:g} m"
-    )
 #: Two grasps are the same grasp when their palm poses are closer than both of these.
 DISTINCT_M = 0.01
 DISTINCT_DEG = 10.0
@@ -246,6 +235,17 @@ def _random_rotation(rng: np.random.Generator) -> np.ndarray:
             [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
             [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
         ]
+    )
+
+
+def too_large(mesh: trimesh.Trimesh) -> str | None:
+    """Why the hand cannot grasp ``mesh`` at all (None when it may)."""
+    diagonal = float(np.linalg.norm(mesh.extents))
+    if diagonal <= MAX_OBJECT_DIAGONAL_M:
+        return None
+    return (
+        f"the shape is {diagonal:.3g} m across (bounding-box diagonal), far beyond the "
+        f"BarrettHand's reach; the planner tries shapes up to {MAX_OBJECT_DIAGONAL_M:g} m"
     )
 
 
