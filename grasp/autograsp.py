@@ -121,6 +121,9 @@ class GraspResult:
     epsilon, volume : float
         Ferrari–Canny quality of the L1 grasp wrench space (``grasp.quality``); −1 and 0 without
         force closure.
+    force_epsilon : float
+        The epsilon of pure forces through the centre of mass (``grasp.quality``): how well the
+        grasp holds the object's weight and inertia; −1 without force closure.
     travel : float
         Net distance moved along the palm's +z during the approach (negative: backed off).
     finger_stops : tuple of 3 str
@@ -138,6 +141,7 @@ class GraspResult:
     epsilon: float = EPSILON_NO_CLOSURE
     volume: float = 0.0
     travel: float = 0.0
+    force_epsilon: float = EPSILON_NO_CLOSURE
     finger_stops: tuple[str, ...] = field(default=("limit", "limit", "limit"))
 
     def joint(self, name: str) -> float:
@@ -160,6 +164,7 @@ class GraspResult:
             ],
             "epsilon": self.epsilon,
             "volume": self.volume,
+            "force_epsilon": self.force_epsilon,
             "travel": self.travel,
             "finger_stops": list(self.finger_stops),
         }
@@ -432,7 +437,12 @@ def with_quality(
     else:
         reason = f"no force closure ({len(result.contacts)} contacts)"
     return dataclasses.replace(
-        result, success=q.force_closure, reason=reason, epsilon=q.epsilon, volume=q.volume
+        result,
+        success=q.force_closure,
+        reason=reason,
+        epsilon=q.epsilon,
+        volume=q.volume,
+        force_epsilon=q.force_epsilon,
     )
 
 

@@ -12,6 +12,12 @@ all contacts' edge wrenches (GraspIt!'s "L1 norm" GWS; Ferrari & Canny 1992).
   or a hull of lower dimension than the wrench space) it is ``EPSILON_NO_CLOSURE`` = −1, as in
   GraspIt!.
 - ``volume``: the hull's volume (0 when the hull is degenerate).
+- ``force_epsilon``: the same radius in the subspace of pure forces through the centre (zero
+  torque): the largest force, in the worst direction, that the grasp resists per unit of total
+  normal force. A carried object's weight and its inertia under the hand's acceleration are
+  such forces (the centre is the centre of mass), so this is the measure of holding it while
+  lifting and shaking (a task wrench space in the sense of Borst et al. 2004). −1 without
+  closure.
 
 Friction: μ = ``MU_RUBBER`` = 1.0. The BH8-280 model in GraspIt! has rubber-coated links and
 hands/barrett/README.md quotes μ = 1.0 for rubber on most materials; the objects here carry no
@@ -38,14 +44,17 @@ _REFINE_STARTS = 4
 _REFINE_STEPS = 60
 #: The origin counts as inside the hull only if every facet is at least this far from it.
 _CLOSURE_TOL = 1e-9
+#: Force components at the front of a wrench: (fx, fy, fz, τ…) in 3-D, (fx, fy, τ) planar.
+_FORCE_DIMS = {6: 3, 3: 2}
 
 
 @dataclass(frozen=True)
 class GraspQuality:
-    """Ferrari–Canny epsilon and volume of a grasp wrench space."""
+    """Ferrari–Canny epsilon, volume and force epsilon of a grasp wrench space."""
 
     epsilon: float
     volume: float
+    force_epsilon: float = EPSILON_NO_CLOSURE
 
     @property
     def force_closure(self) -> bool:
@@ -176,8 +185,14 @@ def wrench_space_quality(wrenches: np.ndarray) -> GraspQuality:
     # facets: normal · x + offset <= 0 inside, unit normals, so -offset = distance to the origin
     distances = -hull.equations[:, -1]
     nearest = float(distances.min())
-    epsilon = nearest if nearest > _CLOSURE_TOL else EPSILON_NO_CLOSURE
-    return GraspQuality(epsilon, float(hull.volume))
+    if nearest <= _CLOSURE_TOL:
+        return GraspQuality(EPSILON_NO_CLOSURE, float(hull.volume))
+    # the hull cut by the force subspace (zero torque) is {f : n_F·f <= distance} per facet; the
+    # largest ball in it has radius min distance / |n_F| (facets parallel to it do not bound it)
+    n_force = np.linalg.norm(hull.equations[:, : _FORCE_DIMS[dim]], axis=1)
+    bounded = n_force > 1e-12
+    force = float((distances[bounded] / n_force[bounded]).min()) if bounded.any() else nearest
+    return GraspQuality(nearest, float(hull.volume), force)
 
 
 @functools.cache

@@ -16,7 +16,7 @@ import numpy as np
 from fastapi import APIRouter, Depends, Path, Query, Request, Response, status
 
 from completion.mesh import MeshFormat, export_mesh
-from grasp.planner import SupportPlane, hand_primitives, too_large
+from grasp.planner import SupportPlane, hand_primitives, palm_touches, too_large
 from hands.barrett import JOINT_NAMES
 from service.deps import Services, ServicesDep, require_token
 from service.inputs import InputError
@@ -299,6 +299,8 @@ def _grasp_out(result, camera_to_world: np.ndarray | None) -> GraspOut:
         dofs_deg=[float(d) for d in result.dofs_deg],
         epsilon=float(result.epsilon),
         volume=float(result.volume),
+        force_epsilon=float(result.force_epsilon),
+        palm_contact=palm_touches(result),
         contacts=[
             ContactOut(
                 link=c.link,

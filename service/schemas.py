@@ -119,8 +119,13 @@ class GraspOut(BaseModel):
         "f2_dist, f3_prox, f3_dist), degrees"
     )
     dofs_deg: list[float] = Field(description="spread, f1, f2, f3 DOFs, degrees")
-    epsilon: float
+    epsilon: float = Field(description="Ferrari–Canny epsilon of the L1 grasp wrench space")
     volume: float
+    force_epsilon: float = Field(
+        description="epsilon of pure forces through the centre of mass (weight, inertia): "
+        "the ranking's measure after force closure and palm contact"
+    )
+    palm_contact: bool = Field(description="the palm touches the object (a power grasp)")
     contacts: list[ContactOut]
     hand: list[PrimitiveOut] = Field(
         description="the hand at this grasp as collision primitives placed by its kinematics"

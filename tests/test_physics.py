@@ -208,3 +208,25 @@ def test_command_line_plans_and_lift_tests(tmp_path, capsys, monkeypatch):
     assert "held 1/1" in out
     assert code == 0
     assert any((tmp_path / "cache" / "mvp-grasp" / "convex").glob("*.obj"))
+
+
+def test_shake_goes_out_and_back_smoothly():
+    """The hand's target never jumps: within and between phases it moves at most the peak
+    shake or lift speed per step, and its acceleration stays within 2π²f²A (a regression: the
+    shake once stayed out and jumped back 3 cm in one step at the next phase)."""
+    from grasp.physics.lift import _schedule
+
+    s = LiftSettings()
+    directions = np.eye(3)[[0, 1, 2, 0]]
+    targets = [np.zeros(3)]
+    for _, steps, target in _schedule(0.10, True, directions, s):
+        targets += [target((i + 1) * s.time_step) for i in range(steps)]
+    targets = np.array(targets)
+    speed = np.linalg.norm(np.diff(targets, axis=0), axis=1) / s.time_step
+    peak = max(np.pi * s.shake_frequency * s.shake_amplitude, np.pi / 2 * s.lift_speed)
+    assert speed.max() <= 1.05 * peak
+    accel = np.linalg.norm(np.diff(targets, 2, axis=0), axis=1) / s.time_step**2
+    lift_time = 0.10 / s.lift_speed
+    lift_peak = (np.pi / lift_time) ** 2 * 0.10 / 2
+    assert accel.max() <= 1.05 * max(s.shake_peak_accel, lift_peak)
+    np.testing.assert_allclose(targets[-1], [0.0, 0.0, 0.10], atol=1e-9)  # back where it rose to

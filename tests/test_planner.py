@@ -8,15 +8,20 @@ import trimesh
 from grasp_scenes import box
 from scipy.spatial.transform import Rotation
 
+from grasp.autograsp import autograsp
 from grasp.planner import (
     DISTINCT_DEG,
     DISTINCT_M,
+    EXACT_CANDIDATES,
+    SCREEN_SPACING_M,
     STANDOFF_M,
     SupportPlane,
     candidate_poses,
     crosses,
+    depth_of,
     distinct,
     hand_points,
+    palm_touches,
     plan,
     principal_axes,
     rank_key,
@@ -84,22 +89,66 @@ def test_candidates_are_deterministic_from_the_seed(brick):
     )
 
 
-def test_plan_is_ranked_by_success_epsilon_volume(brick_plan):
+def test_plan_is_ranked_by_closure_palm_force_epsilon(brick_plan):
     assert len(brick_plan) == 32
     keys = [rank_key(r) for r in brick_plan]
     assert keys == sorted(keys, reverse=True)
     best = brick_plan[0]
-    assert best.success and best.epsilon > 0.2 and best.reason == "force closure"
-    assert all(r.epsilon <= best.epsilon for r in brick_plan)
+    assert best.success and best.force_epsilon > 0.2 and best.reason == "force closure"
+    power = [r for r in brick_plan if r.success and palm_touches(r)]
+    assert power and palm_touches(best)  # a power grasp of the brick exists and comes first
+    assert all(r.force_epsilon <= best.force_epsilon for r in power)
+    assert all(r.force_epsilon >= r.epsilon for r in brick_plan if r.success)
 
 
 def test_plan_is_deterministic_and_top_k_are_the_best_distinct(brick, brick_plan):
-    again = plan(CollisionScene(brick), n_candidates=32, seed=0, top_k=5)
+    """Without the screen, the lazily scored top-k are exactly the full ranking's first k
+    distinct grasps."""
+    again = plan(CollisionScene(brick), n_candidates=32, seed=0, top_k=5, exact=None)
     assert len(again) == 5
     for a, b in zip(again, distinct(brick_plan)[:5], strict=True):
         assert a.joints_deg == b.joints_deg
         np.testing.assert_array_equal(a.palm_pose, b.palm_pose)
         assert (a.epsilon, a.volume) == (b.epsilon, b.volume)
+
+
+def test_screened_plan_autograsps_few_and_returns_grasps_of_the_full_plan(brick, brick_plan):
+    """With the screen, only the most promising candidates are autograsped; what comes back
+    is the same grasps the exact planner finds for those candidates, distinct and deterministic."""
+    timings: dict[str, float] = {}
+    top = plan(brick, n_candidates=32, seed=0, top_k=3, timings=timings)
+    assert timings["screened"] == 32 and timings["autograsped"] == EXACT_CANDIDATES
+    assert set(timings) >= {"setup", "screen", "autograsp", "rank"}
+    assert len(top) == 3 and all(g.success for g in top)
+    assert distinct(top) == top
+    exact = {(r.palm_pose.tobytes(), r.dofs_deg.spread): r for r in brick_plan}
+    for g in top:
+        twin = exact[g.palm_pose.tobytes(), g.dofs_deg.spread]
+        assert g.joints_deg == twin.joints_deg and g.force_epsilon == twin.force_epsilon
+    again = plan(brick, n_candidates=32, seed=0, top_k=3)
+    assert [g.joints_deg for g in again] == [g.joints_deg for g in top]
+    # the screen puts the best of the full ranking among the candidates it autograsps
+    assert top[0].force_epsilon >= 0.9 * brick_plan[0].force_epsilon
+
+
+def test_screen_predicts_where_the_approach_stops_and_what_touches(brick):
+    from grasp.screen import Screen
+
+    scene = CollisionScene(brick)
+    candidates = candidate_poses(brick, n_candidates=32, seed=0)
+    palms = np.stack([c.palm_pose for c in candidates])
+    spreads = np.array([c.spread_deg for c in candidates])
+    travel = float(np.linalg.norm(brick.extents)) + 2 * STANDOFF_M
+    screen = Screen(brick, spacing=SCREEN_SPACING_M)
+    touches, palm, depth = screen.predict(palms, spreads, travel, scene.center)
+    agree = []
+    for c, t, p, d in zip(candidates, touches, palm, depth, strict=True):
+        exact = autograsp(scene, c.palm_pose, spread_deg=c.spread_deg, max_travel=travel)
+        assert t == bool(exact.contacts)
+        if t:
+            assert abs(d - depth_of(exact, scene.center)) < 2.0 * screen.field.pitch
+            agree.append(p == palm_touches(exact))
+    assert np.mean(agree) >= 0.85
 
 
 def test_failures_come_back_as_values():
@@ -205,7 +254,6 @@ def test_fast_screen_agrees_with_the_exact_check_on_free_poses(object_id):
 
 
 def test_fast_approach_stops_at_the_exact_contact():
-    from grasp.autograsp import autograsp
     from grasp.screen import Screen
 
     cube = trimesh.creation.box(extents=(0.06, 0.06, 0.06))

@@ -124,6 +124,33 @@ def test_three_frictional_contacts_on_a_sphere_equal_slow_reference():
     assert support.min() <= 1.15 * q.epsilon
 
 
+def test_force_epsilon_is_the_largest_pure_force_in_the_worst_direction():
+    """force_epsilon vs its definition: min over unit forces u of the largest t with t (u, 0)
+    in the hull (a linear programme per sampled direction: an upper bound, within a few %)."""
+    from scipy.optimize import linprog
+
+    points, normals = three_contacts_on_equator()
+    w = contact_wrenches(points, normals, center=np.zeros(3), max_radius=0.05)
+    q = wrench_space_quality(w)
+    assert q.force_closure
+    assert q.force_epsilon >= q.epsilon  # a 6-D ball cut by the force subspace stays inside
+    u = np.random.default_rng(1).normal(size=(300, 3))
+    u /= np.linalg.norm(u, axis=1, keepdims=True)
+    reach = []
+    for direction in u:  # variables: λ (m) and t; Σλ w = t (u, 0), Σλ = 1, λ >= 0; max t
+        target = np.concatenate([direction, np.zeros(3)])
+        a_eq = np.vstack([np.c_[w.T, -target], np.r_[np.ones(len(w)), 0.0]])
+        b_eq = np.r_[np.zeros(6), 1.0]
+        cost = np.r_[np.zeros(len(w)), -1.0]
+        bounds = [(0, None)] * len(w) + [(None, None)]
+        reach.append(-linprog(cost, A_eq=a_eq, b_eq=b_eq, bounds=bounds).fun)
+    assert min(reach) >= q.force_epsilon - 1e-7
+    assert min(reach) <= 1.1 * q.force_epsilon
+    # without closure there is none
+    lone = wrench_space_quality(w[:FRICTION_EDGES])
+    assert lone.force_epsilon == EPSILON_NO_CLOSURE
+
+
 def test_upper_bounds_never_undercut_epsilon():
     """The planner skips hulls with these bounds, so they must hold for any contact set."""
     rng = np.random.default_rng(4)

@@ -32,6 +32,11 @@ def _smooth(t: float) -> float:
     return 0.5 - 0.5 * math.cos(math.pi * t)
 
 
+def _out_and_back(t: float) -> float:
+    """0 → 1 → 0 for t in [0, 1]: (1 − cos 2πt) / 2 (zero velocity at both ends)."""
+    return 0.5 - 0.5 * math.cos(2.0 * math.pi * min(max(t, 0.0), 1.0))
+
+
 def _schedule(
     lift: float, shake: bool, directions: np.ndarray, s: LiftSettings
 ) -> list[tuple[str, int, Callable[[float], np.ndarray]]]:
@@ -46,12 +51,14 @@ def _schedule(
     if shake:
         period = 1.0 / s.shake_frequency
         for d in directions:
-            # out and back along d: A (1 − cos 2πft) / 2, peak acceleration 2π²f²A
+            # out and back along d: A (1 − cos 2πft) / 2, peak acceleration 2π²f²A (the cosine
+            # ease would clamp at the far end: the hand stayed out and jumped back at the next
+            # phase's first step, 3 cm in one time step)
             phases.append(
                 (
                     "shake",
                     period,
-                    lambda t, d=d: lift * up + s.shake_amplitude * _smooth(2 * t / period) * d,
+                    lambda t, d=d: lift * up + s.shake_amplitude * _out_and_back(t / period) * d,
                 )
             )
         phases.append(("shake", s.hold_time, lambda t: lift * up))
