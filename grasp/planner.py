@@ -54,9 +54,9 @@ MAX_OBJECT_DIAGONAL_M = 2.0
 DISTINCT_M = 0.01
 DISTINCT_DEG = 10.0
 #: Candidates the planner autograsps exactly per round, the screen's most promising first.
-EXACT_CANDIDATES = 8
-#: Spacing of the hand's points in the planner's screen (metres): 631 points on the open hand.
-SCREEN_SPACING_M = 0.015
+EXACT_CANDIDATES = 4
+#: Spacing of the hand's points in the planner's screen (metres): 392 points on the open hand.
+SCREEN_SPACING_M = 0.02
 
 
 @dataclass(frozen=True)
@@ -396,7 +396,7 @@ def screen_order(scene: CollisionScene, candidates: Sequence[Candidate], travel:
 
     palms = np.stack([c.palm_pose for c in candidates])
     spreads = np.array([c.spread_deg for c in candidates])
-    screen = Screen(scene.mesh, spacing=SCREEN_SPACING_M)
+    screen = Screen(scene.mesh, spacing=SCREEN_SPACING_M, nearest=True)
     touches, palm, depth = screen.predict(palms, spreads, travel, scene.center)
     return sorted(range(len(candidates)), key=lambda i: (not touches[i], not palm[i], depth[i], i))
 

@@ -22,6 +22,7 @@ take 0.5-1 s (``python -m grasp.planner`` prints both).
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import numpy as np
@@ -69,15 +70,21 @@ class DistanceField:
         values = pitch * np.where(solid, 0.5 - inside, outside - 0.5)
         return cls(values, origin, pitch, mesh.bounds[0], mesh.bounds[1])
 
-    def __call__(self, points: np.ndarray) -> np.ndarray:
+    def __call__(self, points: np.ndarray, *, nearest: bool = False) -> np.ndarray:
         """Signed distance at (..., 3) points; beyond the grid a lower bound (the larger of the
-        distance to the object's bounding box and the field at the grid's edge minus the gap)."""
+        distance to the object's bounding box and the field at the grid's edge minus the gap).
+        ``nearest``: the nearest voxel's value instead of trilinear interpolation (about 4×
+        faster, within half a voxel diagonal)."""
         p = np.asarray(points, dtype=np.float64)
         index = (p - self.origin) / self.pitch
         clamped = np.clip(index, 0, np.asarray(self.values.shape) - 1)
-        flat = clamped.reshape(-1, 3).T
-        value = ndimage.map_coordinates(self.values, flat, order=1, mode="nearest")
-        value = value.reshape(p.shape[:-1])
+        if nearest:
+            i, j, k = np.rint(clamped).astype(np.intp).transpose(-1, *range(p.ndim - 1))
+            value = self.values[i, j, k]
+        else:
+            flat = clamped.reshape(-1, 3).T
+            value = ndimage.map_coordinates(self.values, flat, order=1, mode="nearest")
+            value = value.reshape(p.shape[:-1])
         gap = self.pitch * np.linalg.norm(index - clamped, axis=-1)
         outside = np.maximum(np.maximum(self.lower - p, p - self.upper), 0.0)
         return np.where(gap > 0, np.maximum(value - gap, np.linalg.norm(outside, axis=-1)), value)
@@ -122,6 +129,12 @@ def hand_cloud(
             for link, p in cloud.items()}
 
 
+@functools.lru_cache(maxsize=8)
+def _hand_cloud(params: BarrettParams, spacing: float) -> dict[str, np.ndarray]:
+    """:func:`hand_cloud` of a hand, built once per process."""
+    return hand_cloud(HandKinematics(params), spacing)
+
+
 class Screen:
     """The screen for one object: its distance field and the hand's point cloud."""
 
@@ -132,11 +145,13 @@ class Screen:
         params: BarrettParams = BH8_282,
         margin: float = 0.0,
         spacing: float = CLOUD_SPACING_M,
+        nearest: bool = False,
     ) -> None:
         self.field = DistanceField.of(mesh)
         self.kinematics = HandKinematics(params)
-        self.cloud = hand_cloud(self.kinematics, spacing)
+        self.cloud = _hand_cloud(params, spacing)
         self.margin = margin
+        self.nearest = nearest  # nearest-voxel lookups (see DistanceField.__call__)
         self._open: dict[float, np.ndarray] = {}
         #: which points of :meth:`open_hand` lie on the palm
         self.palm_points = np.concatenate(
@@ -165,7 +180,7 @@ class Screen:
 
     def clearance(self, palms: np.ndarray, spreads_deg: np.ndarray) -> np.ndarray:
         """(k,) smallest signed distance from the open hand to the object at each palm pose."""
-        return self.field(self._world(palms, spreads_deg)).min(axis=1)
+        return self.field(self._world(palms, spreads_deg), nearest=self.nearest).min(axis=1)
 
     def free(self, palms: np.ndarray, spreads_deg: np.ndarray) -> np.ndarray:
         """(k,) bool: the open hand is clear of the object at each palm pose."""
@@ -182,7 +197,8 @@ class Screen:
             if not active.any():
                 break
             idx = np.flatnonzero(active)
-            gap = self.field(self._world(palms[idx], spreads_deg[idx], travel[idx])).min(axis=1)
+            hands = self._world(palms[idx], spreads_deg[idx], travel[idx])
+            gap = self.field(hands, nearest=self.nearest).min(axis=1)
             done = (gap < tol) | (travel[idx] >= max_travel)
             step = np.where(done, 0.0, np.maximum(gap, tol))
             travel[idx] = np.minimum(travel[idx] + step, max_travel)
@@ -197,7 +213,7 @@ class Screen:
         touches it, within a voxel; depth (k,): distance (m) from the palm to ``center`` along
         the approach when it stops)."""
         travel = self.approach(palms, spreads_deg, max_travel)
-        hands = self.field(self._world(palms, spreads_deg, travel))  # (k, n) distances
+        hands = self.field(self._world(palms, spreads_deg, travel), nearest=self.nearest)
         palm_gap = hands[:, self.palm_points].min(axis=1)
         touches = travel < max_travel
         palm = touches & (palm_gap <= hands.min(axis=1) + self.field.pitch)

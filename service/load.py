@@ -1,12 +1,14 @@
 """``python -m service.load``: a bounded load test of a running service on this machine.
 
 Streams the 12 views of simulated camera_pan scenes into ``--sessions`` sessions
-(``--concurrency`` of them at a time), then asks each for a grasp, and prints the latency
+(``--concurrency`` of them at a time), then asks each for a grasp (``--grasp-every-view``:
+after every view that shows the object, as a robot would), and prints the latency
 percentiles per route, the errors, and lost views (views answered 200 but missing from the
 session afterwards). Talks to loopback addresses only, and stops by itself::
 
     python -m service &                       # or any running server
     python -m service.load --url http://127.0.0.1:8000 --sessions 32 --views 12
+    python -m service.load --url http://127.0.0.1:8000 --sessions 2 --grasp-every-view
 """
 
 from __future__ import annotations
@@ -112,6 +114,13 @@ async def _timed(client, tally: Tally, route: str, method: str, url: str, **kwar
     return response
 
 
+async def _grasp(client, tally: Tally, session_id: str, args) -> None:
+    params = {"session_id": session_id, "top_k": 1, "n_candidates": args.n_candidates}
+    r = await _timed(client, tally, "GET /grasp", "GET", "/grasp", params=params)
+    if r is not None:
+        tally.grasp_timing_ms.append(r.json()["timing_ms"])
+
+
 async def _session(client, tally: Tally, bodies: list[dict], args) -> None:
     session_id, indices = None, []
     for body in bodies:
@@ -124,12 +133,12 @@ async def _session(client, tally: Tally, bodies: list[dict], args) -> None:
             continue
         session_id = r.json()["session_id"]
         indices.append(r.json()["view_index"])
+        if args.grasp_every_view and r.json()["occupied_voxels"] > 0:  # seen: 409 before
+            await _grasp(client, tally, session_id, args)
     if indices != list(range(len(indices))):
         tally.bad_indices += 1
-    params = {"session_id": session_id, "top_k": 1, "n_candidates": args.n_candidates}
-    r = await _timed(client, tally, "GET /grasp", "GET", "/grasp", params=params)
-    if r is not None:
-        tally.grasp_timing_ms.append(r.json()["timing_ms"])
+    if not args.grasp_every_view:
+        await _grasp(client, tally, session_id, args)
     r = await _timed(client, tally, "GET /sessions/{id}", "GET", f"/sessions/{session_id}")
     if r is not None:
         tally.views_lost += len(indices) - r.json()["views"]
@@ -167,6 +176,12 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--concurrency", type=int, default=8, help="sessions streaming at once")
     p.add_argument("--scenes", type=int, default=4, help="distinct simulated scenes, cycled")
     p.add_argument("--n-candidates", type=int, default=64, help="GET /grasp n_candidates")
+    p.add_argument(
+        "--grasp-every-view",
+        action="store_true",
+        help="GET /grasp after every view that shows the object (a robot's loop), not only "
+        "after the last",
+    )
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--timeout", type=float, default=300.0, help="seconds per request")
     p.add_argument("--deadline", type=float, default=1800.0, help="seconds for the whole run")
