@@ -371,7 +371,8 @@ def plan(
                 scene, c.palm_pose, spread_deg=c.spread_deg, max_travel=travel, quality=False
             )
             if support_plane is None or not crosses(support_plane, result):
-                done[i] = result
+                # screened: few results, all ranked, scored once (not again in each round)
+                done[i] = with_quality(result, scene) if screened else result
         position += batch
         lap("autograsp")
         results = [done[i] for i in sorted(done)]  # candidate order breaks ties
@@ -440,7 +441,8 @@ def rank(
     for i in sorted(range(len(results)), key=lambda i: (*cheap(i), -i), reverse=True):
         if top_k is not None and found >= top_k and cheap(i) != last:
             break  # ranks below every force-closure grasp found (ties on the cheap keys go on)
-        scored[i] = with_quality(results[i], scene)
+        r = results[i]
+        scored[i] = r if not math.isnan(r.epsilon) else with_quality(r, scene)
         if scored[i].success:
             found, last = found + 1, cheap(i)
     ranked = sorted(scored, key=lambda i: (*rank_key(scored[i]), -i), reverse=True)
