@@ -264,3 +264,15 @@ def test_fast_approach_stops_at_the_exact_contact():
     for palm, t in zip(palms, travel, strict=True):
         exact = autograsp(cube, palm, spread_deg=0.0, max_travel=0.3, quality=False)
         assert abs(t - exact.travel) < 1.5 * screen.field.pitch
+
+
+def test_a_sheet_of_two_triangles_is_planned_on():
+    """Principal axes of a mesh with fewer faces than dimensions (a regression: the SVD gave
+    two axes and the planner raised IndexError)."""
+    sheet = trimesh.Trimesh(
+        [[0, 0, 0], [0.05, 0, 0], [0, 0.05, 0], [0.05, 0.05, 0]], [[0, 1, 2], [1, 3, 2]]
+    )
+    axes = principal_axes(sheet)
+    np.testing.assert_allclose(axes @ axes.T, np.eye(3), atol=1e-9)
+    grasps = plan(sheet, n_candidates=16, top_k=1)
+    assert len(grasps) == 1 and grasps[0].contacts
