@@ -321,7 +321,8 @@ def plan(
         screen: the complete ranking, for diagnostics).
     timings : dict or None
         Filled with each stage's seconds ("setup": the collision model and the candidates;
-        "screen", "autograsp", "rank") and the counts "screened" and "autograsped".
+        "screen"; "autograsp", with the quality of screened grasps; "rank") and the counts
+        "screened" and "autograsped".
 
     Returns
     -------
