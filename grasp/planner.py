@@ -170,7 +170,8 @@ def principal_axes(mesh: trimesh.Trimesh) -> np.ndarray:
     centroids = mesh.triangles_center
     mean = weights @ centroids
     centred = (centroids - mean) * np.sqrt(weights)[:, None]
-    _, _, axes = np.linalg.svd(centred, full_matrices=True)  # 3 axes even for 1-2 faces
+    # full_matrices only for 1-2 faces (3 axes); for many faces it would build a faces² matrix
+    _, _, axes = np.linalg.svd(centred, full_matrices=len(centred) < 3)
     axes = axes[:3]
     flip = np.sign(axes[np.arange(3), np.argmax(np.abs(axes), axis=1)])
     axes = axes * flip[:, None]
