@@ -322,7 +322,7 @@ def plan(
         screen: the complete ranking, for diagnostics).
     timings : dict or None
         Filled with each stage's seconds ("setup": the collision model and the candidates;
-        "screen"; "autograsp", with the quality of screened grasps; "rank") and the counts
+        "screen"; "autograsp"; "rank", with the quality measures) and the counts
         "screened" and "autograsped".
 
     Returns
@@ -365,6 +365,7 @@ def plan(
     lap("screen")
     batch = len(order) if not screened else max(exact, top_k)
     done: dict[int, GraspResult] = {}
+    memo: dict[int, GraspResult] = {}  # id(result) -> scored: each grasp is scored once
     position = 0
     while True:
         for i in order[position : position + batch]:
@@ -373,15 +374,14 @@ def plan(
                 scene, c.palm_pose, spread_deg=c.spread_deg, max_travel=travel, quality=False
             )
             if support_plane is None or not crosses(support_plane, result):
-                # screened: few results, all ranked, scored once (not again in each round)
-                done[i] = with_quality(result, scene) if screened else result
+                done[i] = result
         position += batch
         lap("autograsp")
         results = [done[i] for i in sorted(done)]  # candidate order breaks ties
         if top_k is None:  # every candidate's result, ranked (for diagnostics): no dedup
             best = rank(results, scene)
         else:
-            best = _best_distinct(results, scene, top_k)
+            best = _best_distinct(results, scene, top_k, memo)
         lap("rank")
         enough = top_k is None or sum(g.success for g in best) >= top_k
         if enough or position >= len(order):
@@ -404,19 +404,25 @@ def screen_order(scene: CollisionScene, candidates: Sequence[Candidate], travel:
     return sorted(range(len(candidates)), key=lambda i: (not touches[i], not palm[i], depth[i], i))
 
 
-def _best_distinct(results: Sequence[GraspResult], scene: CollisionScene, top_k: int):
+def _best_distinct(
+    results: Sequence[GraspResult], scene: CollisionScene, top_k: int, memo: dict | None = None
+):
     """The first ``top_k`` distinct grasps of the ranking: rank only as many as needed, widened
     while duplicates among them leave fewer than ``top_k`` (the top one is always distinct)."""
     width = top_k
     while True:
-        best = distinct(rank(results, scene, top_k=width), top_k)
+        best = distinct(rank(results, scene, top_k=width, memo=memo), top_k)
         if len(best) >= top_k or width >= len(results):
             return best
         width = min(2 * width, len(results))
 
 
 def rank(
-    results: Sequence[GraspResult], scene: CollisionScene, *, top_k: int | None = None
+    results: Sequence[GraspResult],
+    scene: CollisionScene,
+    *,
+    top_k: int | None = None,
+    memo: dict[int, GraspResult] | None = None,
 ) -> list[GraspResult]:
     """Score (epsilon, volume) and sort grasps on ``scene``'s object, best first (:func:`rank_key`).
 
@@ -432,7 +438,8 @@ def rank(
     Ties keep the input order. With ``top_k`` only the grasps that can still enter the top list
     are scored: force closure (the 6-D hull) is computed in the order of the other keys, which
     need only the contacts and the palm pose, until ``top_k`` force-closure grasps were found;
-    the returned list is exactly the first ``top_k`` of the full ranking.
+    the returned list is exactly the first ``top_k`` of the full ranking. ``memo`` (id of a
+    result → its scored copy) keeps scores between calls on growing lists of the same results.
     """
 
     def cheap(i: int) -> tuple[bool, bool]:  # the keys that need no wrench hull
@@ -444,7 +451,12 @@ def rank(
         if top_k is not None and found >= top_k and cheap(i) != last:
             break  # ranks below every force-closure grasp found (ties on the cheap keys go on)
         r = results[i]
-        scored[i] = r if not math.isnan(r.epsilon) else with_quality(r, scene)
+        if memo is not None and id(r) in memo:
+            scored[i] = memo[id(r)]
+        else:
+            scored[i] = r if not math.isnan(r.epsilon) else with_quality(r, scene)
+            if memo is not None:
+                memo[id(r)] = scored[i]
         if scored[i].success:
             found, last = found + 1, cheap(i)
     ranked = sorted(scored, key=lambda i: (*rank_key(scored[i]), -i), reverse=True)
