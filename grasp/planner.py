@@ -13,8 +13,8 @@ approaches until contact. Results come back as values: a candidate that fails is
 ``GraspResult`` with ``success=False`` and its reason, ranked after the successes.
 
 Ranking (:func:`rank`): force closure first, then power grasps (the palm touching the object),
-then the centre of mass nearest the palm, then the Ferrari–Canny epsilon of the L1 grasp wrench
-space; it is chosen to predict the lift test (``grasp.physics``), see :func:`rank`. The top-k
+then the force epsilon (pure forces through the centre of mass), then the Ferrari–Canny epsilon
+of the L1 grasp wrench space; it is chosen to predict the lift test (``grasp.physics``). The top-k
 are distinct grasps: a grasp whose palm pose lies within 1 cm and 10° of a better one is left
 out (:data:`DISTINCT_M`, :data:`DISTINCT_DEG`).
 
@@ -55,7 +55,7 @@ DISTINCT_M = 0.01
 DISTINCT_DEG = 10.0
 #: Candidates the planner autograsps exactly per round, the screen's most promising first.
 EXACT_CANDIDATES = 4
-#: Spacing of the hand's points in the planner's screen (metres): 392 points on the open hand.
+#: Spacing of the hand's points in the planner's screen (metres): 430 points on the hand.
 SCREEN_SPACING_M = 0.02
 
 

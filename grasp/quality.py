@@ -26,7 +26,6 @@ material, so the rubber value is the one that describes the hand. Pass ``mu`` to
 
 from __future__ import annotations
 
-import functools
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -39,9 +38,6 @@ MU_RUBBER = 1.0
 FRICTION_EDGES = 8
 #: Epsilon reported when the grasp has no force closure.
 EPSILON_NO_CLOSURE = -1.0
-#: Descent starts and steps of the refined epsilon upper bound.
-_REFINE_STARTS = 4
-_REFINE_STEPS = 60
 #: The origin counts as inside the hull only if every facet is at least this far from it.
 _CLOSURE_TOL = 1e-9
 #: Force components at the front of a wrench: (fx, fy, fz, τ…) in 3-D, (fx, fy, τ) planar.
@@ -195,57 +191,6 @@ def wrench_space_quality(wrenches: np.ndarray) -> GraspQuality:
     return GraspQuality(nearest, float(hull.volume), force)
 
 
-@functools.cache
-def _probe_directions(dim: int, count: int = 512) -> np.ndarray:
-    """(count + 2 dim, dim) fixed unit directions: ±axes and seeded random ones."""
-    rng = np.random.default_rng(0)
-    dirs = rng.normal(size=(count, dim))
-    dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
-    return np.vstack([np.eye(dim), -np.eye(dim), dirs])
-
-
-def epsilon_upper_bound(wrenches: np.ndarray, *, refine: bool = False) -> float:
-    """A cheap upper bound on :func:`wrench_space_quality`'s epsilon (no hull).
-
-    With the origin inside the hull, epsilon = min over unit u of max_i w_i·u (the support
-    function's minimum), so every unit direction bounds it from above; without force closure
-    epsilon is −1, the bound's floor. The bound takes the best of fixed probe directions and,
-    with ``refine``, improves the best few by smoothed descent on the sphere (~3 ms, usually
-    within a few % of epsilon). Used to skip hulls that cannot enter a top list.
-
-    Parameters
-    ----------
-    wrenches : (m, d) float
-    """
-    wrenches = np.asarray(wrenches, dtype=np.float64)
-    if wrenches.ndim != 2 or len(wrenches) == 0:
-        return EPSILON_NO_CLOSURE
-    probes = _probe_directions(wrenches.shape[1])
-    support = (wrenches @ probes.T).max(axis=0)  # (n_probes,)
-    best = float(support.min())
-    if refine:
-        for start in np.argsort(support, kind="stable")[:_REFINE_STARTS]:
-            best = min(best, _descend(wrenches, probes[start]))
-    return max(best, EPSILON_NO_CLOSURE)
-
-
-def _descend(wrenches: np.ndarray, u: np.ndarray) -> float:
-    """Smallest support value max_i w_i·u met while descending from unit ``u`` on the sphere."""
-    u = u.copy()
-    best, rate = np.inf, 0.2
-    for _ in range(_REFINE_STEPS):
-        values = wrenches @ u
-        top = values.max()
-        best = min(best, top)
-        weights = np.exp((values - top) / 0.02)  # soft arg-max: a smooth subgradient
-        grad = (weights / weights.sum()) @ wrenches
-        grad -= (grad @ u) * u  # tangent to the sphere
-        u -= rate * grad
-        u /= np.linalg.norm(u)
-        rate *= 0.95
-    return float(min(best, (wrenches @ u).max()))
-
-
 def grasp_quality(
     points: np.ndarray,
     normals: np.ndarray,
@@ -281,6 +226,6 @@ def contacts_quality(
     """:func:`grasp_quality` of records with ``.point`` and ``.normal`` (``grasp.sim.Contact``)."""
     if not contacts:
         return GraspQuality(EPSILON_NO_CLOSURE, 0.0)
-    points = np.array([c.point for c in contacts])
-    normals = np.array([c.normal for c in contacts])
-    return grasp_quality(points, normals, center=center, max_radius=max_radius, mu=mu)
+    return wrench_space_quality(
+        contacts_wrenches(contacts, center=center, max_radius=max_radius, mu=mu)
+    )

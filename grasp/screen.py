@@ -15,9 +15,10 @@ lower bound. The hand is a cloud of points on its collision primitives' surfaces
 
 It is approximate near contact: a point cloud and a voxel grid stand for the exact shapes, so
 it agrees with the exact fcl check except within about a voxel of touching (the tests measure
-how often). The planner uses a coarse cloud (15 mm spacing, 631 points on the open hand): 64
-candidates are screened in about 50 ms on this 2-core machine, where their exact autograsps
-take 0.5-1 s (``python -m grasp.planner`` prints both).
+how often). The planner uses a coarse cloud (``grasp.planner.SCREEN_SPACING_M``, 20 mm: 430
+points) and nearest-voxel lookups: 64 candidates are screened in about 25 ms on this 2-core
+machine, where their exact autograsps take about 0.9 s (``python -m grasp.planner`` prints the
+stages; ``--exact 0`` autograsps all).
 """
 
 from __future__ import annotations
@@ -208,7 +209,7 @@ class Screen:
     def predict(
         self, palms: np.ndarray, spreads_deg: np.ndarray, max_travel: float, center: np.ndarray
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """What the planner ranks by, predicted for open hands approaching along their +z:
+        """What the planner orders its candidates by, for open hands approaching along their +z:
         (touches (k,) bool: the approach meets the object; palm (k,) bool: the palm is what
         touches it, within a voxel; depth (k,): distance (m) from the palm to ``center`` along
         the approach when it stops)."""
