@@ -9,7 +9,9 @@ Example (see completion/weights/README.md for the exact runs behind the shipped 
 
 Shards are read from ``--train-dir`` / ``--val-dir``; sequences that are missing are generated
 first (``--train-count`` per condition with seed ``--data-seed`` for training, ``--val-count``
-with seed 0 for validation). Loss: binary cross-entropy with logits and ``pos_weight``; Adam with
+with seed 0 for validation). Loss: binary cross-entropy with logits and ``pos_weight``, plus
+``--jaccard-weight`` × (1 − soft Jaccard) per view when asked (the evaluation's metric is the
+Jaccard of each view, which BCE weighs by object size instead); Adam with
 a cosine decay over ``--steps`` (the budget: the same command repeats the same run);
 ``--minutes`` only caps the wall time. Each step draws ``--batch-size`` sequences (a window of
 ``--views`` consecutive views) and mirrors each in the camera's x and/or y axis. Every
@@ -161,6 +163,17 @@ def warm_start(model: CompletionModel, path: Path) -> None:
                               if k.startswith(prefix)})
 
 
+def soft_jaccard_loss(logits: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    """Mean over views of 1 − soft Jaccard (probabilities for the prediction, one voxel of
+    smoothing); ``logits`` and ``target`` are (..., D, H, W) with one view per leading index.
+    On binary predictions it is 1 − the Jaccard the evaluation scores."""
+    p = torch.sigmoid(logits).flatten(-3)
+    t = target.flatten(-3)
+    inter = (p * t).sum(-1)
+    union = p.sum(-1) + t.sum(-1) - inter
+    return (1 - (inter + 1) / (union + 1)).mean()
+
+
 def train(args: argparse.Namespace) -> dict:
     """One training run; under torchrun each rank trains on its own part of the data."""
     world, device = setup(args.device)
@@ -276,6 +289,8 @@ def _train(args: argparse.Namespace, world: World, device: torch.device) -> dict
         with autocast:
             logits = net(x, local=local)
         loss = F.binary_cross_entropy_with_logits(logits.float(), y, pos_weight=pos_weight)
+        if args.jaccard_weight:
+            loss = loss + args.jaccard_weight * soft_jaccard_loss(logits.float(), y)
         opt.zero_grad(set_to_none=True)
         step += 1
         bar.update()
@@ -469,6 +484,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--batch-size", type=int, default=2, help="sequences per step")
     p.add_argument("--lr", type=float, default=2e-3)
     p.add_argument("--pos-weight", type=float, default=2.0)
+    p.add_argument("--jaccard-weight", type=float, default=0.0, metavar="W",
+                   help="add W × (1 − soft Jaccard per view) to the loss (0: BCE alone)")
     p.add_argument("--clip", type=float, default=1.0, help="gradient norm clip")
     p.add_argument(
         "--config",
@@ -499,6 +516,8 @@ def main(argv: list[str] | None = None) -> int:
             p.error(f"--{name.replace('_', '-')} must be ≥ 1, got {getattr(args, name)}")
     if not 0.0 <= args.blank_local < 1.0:
         p.error(f"--blank-local must be in [0, 1), got {args.blank_local}")
+    if not (args.jaccard_weight >= 0 and math.isfinite(args.jaccard_weight)):
+        p.error(f"--jaccard-weight must be a finite number ≥ 0, got {args.jaccard_weight}")
     if args.blank_local and args.model == "single_view":
         p.error("--blank-local needs a multi-view model (single_view has no context tower)")
     if args.init_from and not args.init_from.is_file():
