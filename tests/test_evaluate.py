@@ -431,6 +431,34 @@ def test_aggregation_of_hand_made_records_gives_hand_computed_cells():
     assert "Ceiling" in report and "How to read this" in report
 
 
+def test_jaccard_precision_gives_standard_errors_paired_differences_and_the_rise():
+    def record(index, mvp, single_view):
+        job = ev.Job(ev.MAIN_TABLE, "camera_pan", "test", index, grasp=False)
+        per_view = {row: {"jaccard": j, "fscore_1": [0.0] * 6, "fscore_2": [0.0] * 6}
+                    for row, j in (("mvp", mvp), ("single_view", single_view))}
+        result = SequenceResult(job, ["proc/box/1"], per_view, {})
+        result.ceiling = {"fscore_1": [1.0], "fscore_2": [1.0]}
+        return result
+
+    results = [
+        record(0, [0.5, 0.5, 0.5, 0.8, 0.8, 0.8], [0.4] * 6),  # mean 0.65, +0.25, rise +0.3
+        record(1, [0.3] * 6, [0.1] * 6),  # mean 0.3, +0.2, rise 0
+    ]
+    settings = ev.Settings(rows=("single_view", "mvp"),
+                           model_paths=(("single_view", "a.pt"), ("mvp", "b.pt")))
+    p = aggregate(results, settings, ev.MAIN_TABLE)["jaccard_precision"]
+    mvp = p["mvp"]["camera_pan"]["test"]
+    assert mvp["cell"] == {"mean": 0.475, "se": pytest.approx(0.175, abs=1e-4), "n": 2}
+    assert mvp["vs_single_view"]["mean"] == pytest.approx(0.225)
+    assert mvp["vs_single_view"]["se"] == pytest.approx(0.025, abs=1e-4)
+    assert mvp["rise"]["mean"] == pytest.approx(0.15)
+    assert mvp["rise"]["se"] == pytest.approx(0.15, abs=1e-4)
+    assert p["single_view"]["camera_pan"]["test"]["vs_single_view"] is None
+    report = ev.markdown_report(ev.build_results(results, settings, {"sequences": 1.0}))
+    assert "| MVP | 0.475 ± 0.175 |" in report
+    assert "| MVP | +0.225 ± 0.025 |" in report and "| MVP | +0.150 ± 0.150 |" in report
+
+
 def test_nothing_prints_pybullet_noise(tmp_path):
     """pybullet's "argv[0]=" and build banner never reach stdout (or stderr)."""
     commands = [

@@ -33,14 +33,43 @@ def mean_or_none(values: Iterable[float | None]) -> float | None:
     return round(float(np.mean(vals)), 4) if vals else None
 
 
+def mean_and_se(values: Iterable[float]) -> dict | None:
+    """Mean and standard error (sample SD / √n) of per-sequence values, 4 places; the SE is
+    None for one value; None for none."""
+    vals = np.asarray(list(values), dtype=float)
+    if vals.size == 0:
+        return None
+    se = float(np.std(vals, ddof=1) / np.sqrt(vals.size)) if vals.size > 1 else None
+    return {"mean": round(float(vals.mean()), 4), "se": None if se is None else round(se, 4),
+            "n": int(vals.size)}
+
+
+def _precision(seqs: list[SequenceResult], row: str, rows: tuple[str, ...]) -> dict:
+    """How far one Jaccard cell can be trusted, from its sequences (each a sample):
+    ``cell`` mean ± SE; ``vs_single_view`` the paired difference row − Single-View on the same
+    sequences (much tighter than two unpaired SEs); ``rise`` the mean of the last three views
+    minus the first three per sequence (> 0: the curve rises, as working memory should)."""
+    own = [np.asarray(r.per_view[row]["jaccard"]) for r in seqs]
+    out = {"cell": mean_and_se(v.mean() for v in own), "vs_single_view": None, "rise": None}
+    if row != "single_view" and "single_view" in rows:
+        out["vs_single_view"] = mean_and_se(
+            v.mean() - np.mean(r.per_view["single_view"]["jaccard"])
+            for v, r in zip(own, seqs, strict=True)
+        )
+    if own and min(v.size for v in own) >= 6:
+        out["rise"] = mean_and_se(v[-3:].mean() - v[:3].mean() for v in own)
+    return out
+
+
 def aggregate(results: list[SequenceResult], settings: Settings, table: str) -> dict:
     """Tables for one set of sequences: metric -> row -> condition -> split -> value (or None).
 
     Also ``counts`` per cell (``sequences``; ``grasped``: sequences whose final view was grasped;
     ``grasp_ok``: of those, how many gave a comparable grasp, i.e. how many the joint-error cell
     averages), ``grasp_failures`` (the reasons of the others), ``per_view_jaccard`` (mean over
-    sequences per view index), ``joint_error_per_joint_deg`` and, per condition and split, the
-    F-score ``ceiling`` (the 40³ target itself scored like a prediction).
+    sequences per view index), ``jaccard_precision`` (standard errors, :func:`_precision`),
+    ``joint_error_per_joint_deg`` and, per condition and split, the F-score ``ceiling`` (the 40³
+    target itself scored like a prediction).
     """
     mine = [r for r in results if r.job.table == table]
     conditions = sorted({r.job.condition for r in mine}, key=CONDITIONS.index)
@@ -54,6 +83,7 @@ def aggregate(results: list[SequenceResult], settings: Settings, table: str) -> 
     per_view: dict = {}
     failures: dict = {}
     per_joint: dict = {}
+    precision: dict = {}
     for row in settings.rows:
         for m in METRICS:
             tables[m][row] = {c: {} for c in conditions}
@@ -61,6 +91,7 @@ def aggregate(results: list[SequenceResult], settings: Settings, table: str) -> 
         per_view[row] = {c: {} for c in conditions}
         failures[row] = {c: {} for c in conditions}
         per_joint[row] = {c: {} for c in conditions}
+        precision[row] = {c: {} for c in conditions}
         for c in conditions:
             applies = c in SINGLE_OBJECT_CONDITIONS
             for s in splits:
@@ -81,6 +112,7 @@ def aggregate(results: list[SequenceResult], settings: Settings, table: str) -> 
                 failures[row][c][s] = sorted({g["reason"] for g in grasped if g["reason"]})
                 views = [r.per_view[row]["jaccard"] for r in seqs]
                 per_view[row][c][s] = np.round(np.mean(views, axis=0), 4).tolist() if seqs else []
+                precision[row][c][s] = _precision(seqs, row, settings.rows)
     success_counts: dict = {}
     for row in (*settings.rows, TRUE_MESH):
         tables[GRASP_SUCCESS][row] = {c: {} for c in conditions}
@@ -104,6 +136,7 @@ def aggregate(results: list[SequenceResult], settings: Settings, table: str) -> 
         "counts": counts,
         "grasp_success_counts": success_counts,
         "per_view_jaccard": per_view,
+        "jaccard_precision": precision,
         "grasp_failures": failures,
         "joint_error_per_joint_deg": per_joint,
         "ceiling": ceiling,
@@ -185,6 +218,7 @@ def build_results(results: list[SequenceResult], settings: Settings, wall: dict)
         "joint_error_per_joint_deg": main["joint_error_per_joint_deg"],
         "pooled_joint_error_per_joint_deg": _pooled_per_joint(results, settings),
         "per_view_jaccard": main["per_view_jaccard"],
+        "jaccard_precision": main["jaccard_precision"],
         "named_objects": None,
         "objects_dir": None,
         "per_object": per_object_records(results, settings),
