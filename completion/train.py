@@ -18,6 +18,7 @@ a cosine decay over ``--steps`` (the budget: the same command repeats the same r
 ``--val-every`` steps and at the end the model is scored on the validation set (Jaccard per
 condition over the views, at several thresholds); the best checkpoint by mean Jaccard at 0.5 is
 written to ``--out`` (fp16 weights, loaded back to fp32) with its figures, and
+``--ema`` validates and ships a moving average of the weights instead of the raw ones;
 ``<run-dir>/last.pt`` holds the full training state (weights, optimizer, sampler) for
 ``--resume``. ``--init-from`` starts a multi-view model from a trained Single-View U-Net.
 
@@ -225,6 +226,12 @@ def _train(args: argparse.Namespace, world: World, device: torch.device) -> dict
             model, device_ids=[device.index] if device.type == "cuda" else None
         )
     opt = torch.optim.Adam(model.parameters(), lr=args.lr)
+    # an exponential moving average of the weights, when asked: what is validated and shipped
+    ema = None
+    if args.ema:
+        from torch.optim.swa_utils import AveragedModel, get_ema_multi_avg_fn
+
+        ema = AveragedModel(model, multi_avg_fn=get_ema_multi_avg_fn(args.ema), use_buffers=True)
     run_dir = args.run_dir or Path("runs") / args.out.stem
     run_dir.mkdir(parents=True, exist_ok=True)
     last = run_dir / "last.pt"
@@ -239,6 +246,10 @@ def _train(args: argparse.Namespace, world: World, device: torch.device) -> dict
             raise ValueError(f"{last} was written by {len(generators)} rank(s); resume it with "
                              f"the same number, not {world.size}")
         gen.set_state(generators[world.rank])
+        if ema is not None:
+            if "ema" not in payload:
+                raise ValueError(f"{last} has no weight average; resume it without --ema")
+            ema.load_state_dict(payload["ema"])
         step, best, history = payload["step"], payload["best"], payload["history"]
         elapsed_before, skipped = payload["wall_s"], payload["skipped"]
         if world.main:
@@ -263,7 +274,7 @@ def _train(args: argparse.Namespace, world: World, device: torch.device) -> dict
         nonlocal best
         generators = world.gather(gen.get_state())
         if world.main:
-            best = _validate_and_save(args, model, opt, val_set, generators, last, step=step,
+            best = _validate_and_save(args, model, ema, opt, val_set, generators, last, step=step,
                                       best=best, history=history, wall_s=wall(), skipped=skipped,
                                       loss=loss, epochs=step * args.batch_size * world.size / n_all,
                                       n_train=n_all, device=device, world=world)  # fmt: skip
@@ -300,6 +311,8 @@ def _train(args: argparse.Namespace, world: World, device: torch.device) -> dict
             loss.backward()
             torch.nn.utils.clip_grad_norm_(model.parameters(), args.clip)
             opt.step()
+            if ema is not None:
+                ema.update_parameters(model)
             bar.set_postfix(loss=f"{loss.item():.4f}")
         if step % args.val_every == 0 and step < args.steps:
             checkpoint()
@@ -320,11 +333,13 @@ def _train(args: argparse.Namespace, world: World, device: torch.device) -> dict
     return summary
 
 
-def _validate_and_save(args, model, opt, val_set, generators, last, *, step, best, history,
+def _validate_and_save(args, model, ema, opt, val_set, generators, last, *, step, best, history,
                        wall_s, skipped, loss, epochs, n_train, device, world) -> float:
-    """Score the model on the validation set, write the best checkpoint (``args.out``) and the
-    full training state (``last``); returns the best mean validation Jaccard so far."""
-    scores = validate(model, val_set)
+    """Score the model (its weight average with ``--ema``) on the validation set, write the best
+    checkpoint (``args.out``) and the full training state (``last``); returns the best mean
+    validation Jaccard so far."""
+    scored = model if ema is None else ema.module
+    scores = validate(scored, val_set)
     mean = scores["0.50"]["mean"]
     last_loss = float(loss.detach())
     history.append({"step": step, "epochs": round(epochs, 3), "val_jaccard": mean,
@@ -334,13 +349,14 @@ def _validate_and_save(args, model, opt, val_set, generators, last, *, step, bes
     if mean > best:
         best = mean
         save_checkpoint(
-            copy.deepcopy(model).half().cpu(), args.out, name=args.out.stem, threshold=0.5,
+            copy.deepcopy(scored).half().cpu(), args.out, name=args.out.stem, threshold=0.5,
             views=args.views, conditions=args.conditions, val=scores, epoch=round(epochs, 3),
             step=step, wall_s=wall_s, device=str(device), train_sequences=n_train,
             precision=args.precision, init_from=str(args.init_from or ""),
             command=args.command, ranks=world.size,
         )
-    save_checkpoint(model, last, optimizer=opt.state_dict(),
+    averaged = {} if ema is None else {"ema": ema.state_dict()}
+    save_checkpoint(model, last, optimizer=opt.state_dict(), **averaged,
                     generator=generators[0], generators=generators, step=step, best=best,
                     history=history, wall_s=wall_s, skipped=skipped)
     return best
@@ -486,6 +502,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--pos-weight", type=float, default=2.0)
     p.add_argument("--jaccard-weight", type=float, default=0.0, metavar="W",
                    help="add W × (1 − soft Jaccard per view) to the loss (0: BCE alone)")
+    p.add_argument("--ema", type=float, default=0.0, metavar="DECAY",
+                   help="validate and ship an exponential moving average of the weights with "
+                        "this decay per step, e.g. 0.999 (0: the raw weights)")
     p.add_argument("--clip", type=float, default=1.0, help="gradient norm clip")
     p.add_argument(
         "--config",
@@ -518,6 +537,8 @@ def main(argv: list[str] | None = None) -> int:
         p.error(f"--blank-local must be in [0, 1), got {args.blank_local}")
     if not (args.jaccard_weight >= 0 and math.isfinite(args.jaccard_weight)):
         p.error(f"--jaccard-weight must be a finite number ≥ 0, got {args.jaccard_weight}")
+    if not 0.0 <= args.ema < 1.0:
+        p.error(f"--ema must be in [0, 1), got {args.ema}")
     if args.blank_local and args.model == "single_view":
         p.error("--blank-local needs a multi-view model (single_view has no context tower)")
     if args.init_from and not args.init_from.is_file():

@@ -43,6 +43,28 @@ def test_train_writes_best_checkpoint_and_resumes(shards, tmp_path, capsys):
     assert resumed["steps"] == 6 and [h["step"] for h in resumed["history"]] == [2, 4, 6]
 
 
+def test_ema_ships_the_weight_average_and_resumes_it(shards, tmp_path, capsys):
+    import torch
+
+    out = tmp_path / "ema.pt"
+    args = ["--model", "mvp", "--views", "2", "--train-dir", str(shards / "train"),
+            "--val-dir", str(shards / "val"), "--train-count", "0", "--val-count", "0",
+            "--steps", "3", "--val-every", "3", "--batch-size", "2", "--config", TINY,
+            "--lr", "1e-2", "--ema", "0.9", "--out", str(out), "--run-dir", str(tmp_path / "run"),
+            "--quiet"]
+    assert main(args) == 0
+    shipped = read_checkpoint(out)["state_dict"]
+    last = read_checkpoint(tmp_path / "run" / "last.pt")
+    average = {k[len("module."):]: v for k, v in last["ema"].items() if k.startswith("module.")}
+    assert average.keys() == shipped.keys()
+    for k, v in shipped.items():
+        assert torch.equal(v, average[k].to(v.dtype)), k
+    assert any(not torch.equal(v, last["state_dict"][k].to(v.dtype)) for k, v in shipped.items())
+    assert main([*args[:-1], "--steps", "5", "--resume", "--quiet"]) == 0
+    resumed = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert [h["step"] for h in resumed["history"]] == [3, 5]
+
+
 def test_select_threshold_writes_one_threshold_into_every_checkpoint(shards, tmp_path, capsys):
     outs = []
     for kind in ("single_view", "lstm"):
@@ -72,6 +94,9 @@ def test_bad_arguments_are_explained(capsys):
     with pytest.raises(SystemExit):
         main(["--model", "mvp", "--jaccard-weight", "-1", "--out", "x.pt"])
     assert "--jaccard-weight must be a finite number ≥ 0" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        main(["--model", "mvp", "--ema", "1", "--out", "x.pt"])
+    assert "--ema must be in [0, 1)" in capsys.readouterr().err
 
 
 @pytest.mark.slow
