@@ -453,6 +453,7 @@ def test_jaccard_precision_gives_standard_errors_paired_differences_and_the_rise
     assert mvp["vs_single_view"]["se"] == pytest.approx(0.025, abs=1e-4)
     assert mvp["rise"]["mean"] == pytest.approx(0.15)
     assert mvp["rise"]["se"] == pytest.approx(0.15, abs=1e-4)
+    assert mvp["rise_vs_single_view"]["mean"] == pytest.approx(0.15)  # Single-View is flat
     assert p["single_view"]["camera_pan"]["test"]["vs_single_view"] is None
     report = ev.markdown_report(ev.build_results(results, settings, {"sequences": 1.0}))
     assert "| MVP | 0.475 ± 0.175 |" in report

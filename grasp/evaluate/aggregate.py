@@ -48,16 +48,24 @@ def _precision(seqs: list[SequenceResult], row: str, rows: tuple[str, ...]) -> d
     """How far one Jaccard cell can be trusted, from its sequences (each a sample):
     ``cell`` mean ± SE; ``vs_single_view`` the paired difference row − Single-View on the same
     sequences (much tighter than two unpaired SEs); ``rise`` the mean of the last three views
-    minus the first three per sequence (> 0: the curve rises, as working memory should)."""
+    minus the first three per sequence (> 0: the curve rises, as working memory should), and
+    ``rise_vs_single_view`` that rise minus Single-View's on the same sequence (what is left
+    once the views' own difficulty, which both see, is taken out)."""
+
+    def rise(v: np.ndarray) -> float:
+        return v[-3:].mean() - v[:3].mean()
+
     own = [np.asarray(r.per_view[row]["jaccard"]) for r in seqs]
-    out = {"cell": mean_and_se(v.mean() for v in own), "vs_single_view": None, "rise": None}
-    if row != "single_view" and "single_view" in rows:
-        out["vs_single_view"] = mean_and_se(
-            v.mean() - np.mean(r.per_view["single_view"]["jaccard"])
-            for v, r in zip(own, seqs, strict=True)
-        )
+    out = {"cell": mean_and_se(v.mean() for v in own), "vs_single_view": None, "rise": None,
+           "rise_vs_single_view": None}
+    paired = row != "single_view" and "single_view" in rows
+    sv = [np.asarray(r.per_view["single_view"]["jaccard"]) for r in seqs] if paired else []
+    if paired:
+        out["vs_single_view"] = mean_and_se(v.mean() - w.mean() for v, w in zip(own, sv, strict=True))
     if own and min(v.size for v in own) >= 6:
-        out["rise"] = mean_and_se(v[-3:].mean() - v[:3].mean() for v in own)
+        out["rise"] = mean_and_se(rise(v) for v in own)
+        if paired:
+            out["rise_vs_single_view"] = mean_and_se(rise(v) - rise(w) for v, w in zip(own, sv, strict=True))
     return out
 
 

@@ -182,7 +182,9 @@ def markdown_precision(results: dict, split: str = "test") -> list[str]:
         "interval). Comparisons on the same sequences are tighter: the second table gives each "
         "row minus Single-View, paired sequence by sequence; the third the mean of the last "
         "three views minus the first three, per sequence (above 0: the per-view curve rises, as "
-        "working memory should make it). `jaccard_precision` in results.json has both splits.",
+        "working memory should make it); the fourth that rise minus Single-View's on the same "
+        "sequence, which takes out how hard the views themselves are. `jaccard_precision` in "
+        "results.json has both splits.",
         "",
         "Jaccard:",
         "",
@@ -195,6 +197,10 @@ def markdown_precision(results: dict, split: str = "test") -> list[str]:
         "Last three views minus the first three:",
         "",
         *table("rise", signed=True),
+        "",
+        "That rise minus Single-View's (paired):",
+        "",
+        *table("rise_vs_single_view", signed=True),
         "",
     ]
 
