@@ -60,12 +60,13 @@ def _precision(seqs: list[SequenceResult], row: str, rows: tuple[str, ...]) -> d
            "rise_vs_single_view": None}
     paired = row != "single_view" and "single_view" in rows
     sv = [np.asarray(r.per_view["single_view"]["jaccard"]) for r in seqs] if paired else []
+    pairs = list(zip(own, sv, strict=True)) if paired else []
     if paired:
-        out["vs_single_view"] = mean_and_se(v.mean() - w.mean() for v, w in zip(own, sv, strict=True))
+        out["vs_single_view"] = mean_and_se(v.mean() - w.mean() for v, w in pairs)
     if own and min(v.size for v in own) >= 6:
         out["rise"] = mean_and_se(rise(v) for v in own)
         if paired:
-            out["rise_vs_single_view"] = mean_and_se(rise(v) - rise(w) for v, w in zip(own, sv, strict=True))
+            out["rise_vs_single_view"] = mean_and_se(rise(v) - rise(w) for v, w in pairs)
     return out
 
 
