@@ -17,10 +17,10 @@ a cosine decay over ``--steps`` (the budget: the same command repeats the same r
 ``--views`` consecutive views) and mirrors each in the camera's x and/or y axis. Every
 ``--val-every`` steps and at the end the model is scored on the validation set (Jaccard per
 condition over the views, at several thresholds); the best checkpoint by mean Jaccard at 0.5 is
-written to ``--out`` (fp16 weights, loaded back to fp32) with its figures, and
-``--ema`` validates and ships a moving average of the weights instead of the raw ones;
-``<run-dir>/last.pt`` holds the full training state (weights, optimizer, sampler) for
-``--resume``. ``--init-from`` starts a multi-view model from a trained Single-View U-Net.
+written to ``--out`` (fp16 weights, loaded back to fp32) with its figures (with ``--ema``, a
+moving average of the weights is what is validated and written instead of the raw weights),
+and ``<run-dir>/last.pt`` holds the full training state (weights, optimizer, sampler, average)
+for ``--resume``. ``--init-from`` starts a multi-view model from a trained Single-View U-Net.
 
 One decision threshold for all models is then chosen on the validation sweeps, and the
 per-view validation Jaccard of a model, with its memory and with every view alone, shows what

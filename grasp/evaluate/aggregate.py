@@ -59,8 +59,8 @@ def _precision(seqs: list[SequenceResult], row: str, rows: tuple[str, ...]) -> d
     out = {"cell": mean_and_se(v.mean() for v in own), "vs_single_view": None, "rise": None,
            "rise_vs_single_view": None}
     paired = row != "single_view" and "single_view" in rows
-    sv = [np.asarray(r.per_view["single_view"]["jaccard"]) for r in seqs] if paired else []
-    pairs = list(zip(own, sv, strict=True)) if paired else []
+    pairs = [(v, np.asarray(r.per_view["single_view"]["jaccard"]))
+             for v, r in zip(own, seqs, strict=True)] if paired else []
     if paired:
         out["vs_single_view"] = mean_and_se(v.mean() - w.mean() for v, w in pairs)
     if own and min(v.size for v in own) >= 6:
