@@ -11,6 +11,7 @@ nothing imports it unless ``--ray`` is given.
 
 from __future__ import annotations
 
+import functools
 import os
 from collections.abc import Callable, Iterable, Iterator
 from typing import Any, TypeVar
@@ -52,6 +53,14 @@ class _Worker:
         return fn(item)
 
 
+@functools.cache
+def _remote_worker():
+    """The actor class, made once per process: Ray exports a class to the cluster's store once
+    per job, where a class made per call is exported again by every call (a store write that
+    once stalled a CI run on a single-node runtime)."""
+    return _ray().remote(num_cpus=1)(_Worker)
+
+
 def ray_map(
     fn: Callable[[T], R],
     items: Iterable[T],
@@ -65,8 +74,7 @@ def ray_map(
     from ray.util import ActorPool
 
     init(workers)
-    actor = ray.remote(num_cpus=1)(_Worker)
-    actors = [actor.remote(initializer, initargs) for _ in range(workers)]
+    actors = [_remote_worker().remote(initializer, initargs) for _ in range(workers)]
     try:
         yield from ActorPool(actors).map(lambda a, item: a.run.remote(fn, item), list(items))
     finally:
