@@ -164,6 +164,29 @@ def warm_start(model: CompletionModel, path: Path) -> None:
                               if k.startswith(prefix)})
 
 
+def mask_views(
+    x: torch.Tensor, gen: torch.Generator, *, hide: float = 0.0, blank_local: float = 0.0
+) -> tuple[torch.Tensor, torch.Tensor | None]:
+    """Training-time view masking of a batch ``x`` (B, L, G, G, G); the targets never change.
+
+    ``hide``: each view after the first becomes empty for both towers with this probability, so
+    only the memory of earlier views can say what it holds (``--hide-views``). ``blank_local``:
+    each view becomes empty for the local tower alone, the context tower still sees it
+    (``--blank-local``). Returns (what the context tower sees, what the local tower sees or None
+    for the same). Draws from ``gen`` only for the options that are on, so runs without them
+    keep their random stream.
+    """
+    if hide:
+        hidden = torch.rand(x.shape[:2], generator=gen) < hide
+        hidden[:, 0] = False  # the first view has no memory to draw on
+        x = x * ~hidden[..., None, None, None]
+    local = None
+    if blank_local:
+        keep = torch.rand(x.shape[:2], generator=gen) >= blank_local
+        local = x * keep[..., None, None, None]
+    return x, local
+
+
 def soft_jaccard_loss(logits: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
     """Mean over views of 1 − soft Jaccard (probabilities for the prediction, one voxel of
     smoothing); ``logits`` and ``target`` are (..., D, H, W) with one view per leading index.
@@ -290,11 +313,9 @@ def _train(args: argparse.Namespace, world: World, device: torch.device) -> dict
         x, y = unpack(train_set["packed"][idx, :, first : first + args.views])
         if args.augment:
             x, y = augment(x, y, gen)
-        local = None
-        if args.blank_local:  # hide views from the local tower: the context must carry them
-            keep = torch.rand(x.shape[:2], generator=gen) >= args.blank_local
-            local = (x * keep[..., None, None, None]).to(device)
+        x, local = mask_views(x, gen, hide=args.hide_views, blank_local=args.blank_local)
         x, y = x.to(device), y.to(device)
+        local = None if local is None else local.to(device)
         for group in opt.param_groups:  # cosine decay to a tenth over the step budget
             group["lr"] = args.lr * (0.1 + 0.45 * (1 + math.cos(math.pi * step / args.steps)))
         with autocast:
@@ -528,6 +549,10 @@ def main(argv: list[str] | None = None) -> int:
                    help="multi-view models: hide each training view from the local tower with "
                    "probability P (the context tower still sees it), so that the memory path "
                    "learns to carry the shape; 0 = off")
+    p.add_argument("--hide-views", type=float, default=0.0, metavar="P",
+                   help="multi-view models: blank each training view after the first from both "
+                   "towers with probability P (the target stays), so that the memory must carry "
+                   "earlier views' shape into the current view's frame; 0 = off")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     args = p.parse_args(argv)
     for name in ("views", "steps", "val_every", "batch_size", "threads"):
@@ -535,12 +560,16 @@ def main(argv: list[str] | None = None) -> int:
             p.error(f"--{name.replace('_', '-')} must be ≥ 1, got {getattr(args, name)}")
     if not 0.0 <= args.blank_local < 1.0:
         p.error(f"--blank-local must be in [0, 1), got {args.blank_local}")
+    if not 0.0 <= args.hide_views < 1.0:
+        p.error(f"--hide-views must be in [0, 1), got {args.hide_views}")
     if not (args.jaccard_weight >= 0 and math.isfinite(args.jaccard_weight)):
         p.error(f"--jaccard-weight must be a finite number ≥ 0, got {args.jaccard_weight}")
     if not 0.0 <= args.ema < 1.0:
         p.error(f"--ema must be in [0, 1), got {args.ema}")
     if args.blank_local and args.model == "single_view":
         p.error("--blank-local needs a multi-view model (single_view has no context tower)")
+    if args.hide_views and args.model == "single_view":
+        p.error("--hide-views needs a multi-view model (single_view has no memory)")
     if args.init_from and not args.init_from.is_file():
         p.error(f"--init-from: no such checkpoint {args.init_from}")
     args.command = "python -m completion.train " + shlex.join(argv)

@@ -92,6 +92,12 @@ def test_bad_arguments_are_explained(capsys):
         main(["--model", "Single-View", "--blank-local", "0.3", "--out", "x.pt"])
     assert "needs a multi-view model" in capsys.readouterr().err
     with pytest.raises(SystemExit):
+        main(["--model", "mvp", "--hide-views", "-0.1", "--out", "x.pt"])
+    assert "--hide-views must be in [0, 1)" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        main(["--model", "single_view", "--hide-views", "0.2", "--out", "x.pt"])
+    assert "--hide-views needs a multi-view model" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
         main(["--model", "mvp", "--jaccard-weight", "-1", "--out", "x.pt"])
     assert "--jaccard-weight must be a finite number ≥ 0" in capsys.readouterr().err
     with pytest.raises(SystemExit):
@@ -197,3 +203,25 @@ def test_soft_jaccard_loss_is_one_minus_the_jaccard_on_sure_predictions():
     soft_jaccard_loss(soft, target[:1, :1]).backward()
     grad = soft.grad[0, 0]
     assert (grad[target[0, 0] > 0] < 0).all() and (grad[target[0, 0] == 0] > 0).all()
+
+
+def test_mask_views_hides_later_views_from_both_towers_and_blanks_the_local_one():
+    import torch
+
+    from completion.train import mask_views
+
+    x = torch.ones(64, 5, 4, 4, 4)
+    same, local = mask_views(x, torch.Generator().manual_seed(0))
+    assert same is x and local is None  # both off: nothing drawn, nothing changed
+    seen, local = mask_views(x, torch.Generator().manual_seed(0), hide=0.5)
+    per_view = seen.flatten(2).amax(-1)  # (B, L): 1 where the view is kept, 0 where hidden
+    assert local is None and set(per_view.unique().tolist()) == {0.0, 1.0}
+    assert per_view[:, 0].eq(1).all()  # the first view is never hidden
+    assert 0.35 < 1 - per_view[:, 1:].mean() < 0.65
+    assert torch.equal(seen, x * per_view[..., None, None, None])  # whole views, nothing partial
+    seen, local = mask_views(x, torch.Generator().manual_seed(1), hide=0.5, blank_local=0.5)
+    ctx, loc = seen.flatten(2).amax(-1), local.flatten(2).amax(-1)
+    assert (loc <= ctx).all()  # a view hidden from both stays hidden from the local tower
+    assert ((ctx == 1) & (loc == 0)).any()  # and some the context sees are blank for the local
+    again = mask_views(x, torch.Generator().manual_seed(1), hide=0.5, blank_local=0.5)
+    assert torch.equal(again[0], seen) and torch.equal(again[1], local)  # seeded
