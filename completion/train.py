@@ -558,18 +558,16 @@ def main(argv: list[str] | None = None) -> int:
     for name in ("views", "steps", "val_every", "batch_size", "threads"):
         if getattr(args, name) < 1:
             p.error(f"--{name.replace('_', '-')} must be ≥ 1, got {getattr(args, name)}")
-    if not 0.0 <= args.blank_local < 1.0:
-        p.error(f"--blank-local must be in [0, 1), got {args.blank_local}")
-    if not 0.0 <= args.hide_views < 1.0:
-        p.error(f"--hide-views must be in [0, 1), got {args.hide_views}")
+    for flag in ("blank_local", "hide_views"):  # the two view-masking probabilities
+        value, name = getattr(args, flag), "--" + flag.replace("_", "-")
+        if not 0.0 <= value < 1.0:
+            p.error(f"{name} must be in [0, 1), got {value}")
+        if value and args.model == "single_view":
+            p.error(f"{name} needs a multi-view model (single_view has no context tower)")
     if not (args.jaccard_weight >= 0 and math.isfinite(args.jaccard_weight)):
         p.error(f"--jaccard-weight must be a finite number ≥ 0, got {args.jaccard_weight}")
     if not 0.0 <= args.ema < 1.0:
         p.error(f"--ema must be in [0, 1), got {args.ema}")
-    if args.blank_local and args.model == "single_view":
-        p.error("--blank-local needs a multi-view model (single_view has no context tower)")
-    if args.hide_views and args.model == "single_view":
-        p.error("--hide-views needs a multi-view model (single_view has no memory)")
     if args.init_from and not args.init_from.is_file():
         p.error(f"--init-from: no such checkpoint {args.init_from}")
     args.command = "python -m completion.train " + shlex.join(argv)
