@@ -35,6 +35,7 @@ from __future__ import annotations
 
 import dataclasses
 import io
+import math
 import os
 from collections.abc import Mapping
 from dataclasses import dataclass
@@ -88,6 +89,13 @@ class ModelConfig:
     before attention. It bounds ‖k‖, so FAVOR+ key features cannot underflow to zero and make
     the normaliser's gradient overflow (training otherwise diverged to NaN); per position, so
     nothing crosses time. On for the shipped mvp models; False keeps older checkpoints exact.
+    value_rotation: rotary values in the attention towers (mvp, mvt), in degrees per view of
+    the base rate, 0 = off (older checkpoints). Channel pair i of each head's value turns by
+    t · (i mod 7) · value_rotation at view t and the attention output turns back by the current
+    view's angles, so a past view's features reach the current one rotated by the view offset
+    alone (:func:`completion.towers.value_angles`). Without it a value is a linear map of its
+    token plus the position code and cannot turn with the offset: the memory can carry only
+    what does not change as the camera moves. 30 matches the simulated pans (30° a view).
     seed: weight initialisation and the initial FAVOR+ draw.
     """
 
@@ -107,6 +115,7 @@ class ModelConfig:
     pos_encoding: PositionalEncoding = "sinusoidal"
     pos_base: float = 10000.0
     qk_norm: bool = False
+    value_rotation: float = 0.0
     seed: int = 0
 
     def __post_init__(self) -> None:
@@ -144,6 +153,15 @@ class ModelConfig:
             raise ValueError(
                 f"embed_dim {self.embed_dim} must be divisible by n_heads {self.n_heads}"
             )
+        object.__setattr__(self, "value_rotation", float(self.value_rotation))
+        if not (math.isfinite(self.value_rotation) and 0 <= self.value_rotation <= 180):
+            raise ValueError(f"value_rotation must be in [0, 180] degrees per view, "
+                             f"got {self.value_rotation}")
+        if self.value_rotation and (self.kind not in ("mvp", "mvt") or
+                                    (self.embed_dim // self.n_heads) % 2):
+            raise ValueError("value_rotation needs an attention model (mvp, mvt) with an even "
+                             f"head size, got kind {self.kind!r}, head size "
+                             f"{self.embed_dim // self.n_heads}")
         if self.pos_encoding == "sinusoidal" and self.embed_dim % 2:
             raise ValueError(f"sinusoidal encoding needs an even embed_dim, got {self.embed_dim}")
         if self.norm == "group" and any(c % _groups(c) for c in self.channels):

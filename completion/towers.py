@@ -40,11 +40,39 @@ def sinusoidal_encoding(positions: Tensor, dim: int, *, base: float = 10000.0) -
     return torch.stack((angles.sin(), angles.cos()), dim=-1).flatten(-2)
 
 
+#: Rotary values: channel pair i of a head turns at ``i % VALUE_HARMONICS`` times the base rate.
+VALUE_HARMONICS = 7
+
+
+def value_angles(positions: Tensor, head_dim: int, degrees_per_view: float) -> Tensor:
+    """Angles of the rotary values: positions (...,) int -> (..., E/2) float32 radians.
+
+    Pair i turns by t · (i mod 7) · degrees_per_view: harmonics 0 (content that does not turn
+    with the view, such as size) to 6 of one rotation rate, as the features of a shape turning
+    about one axis transform (the irreducible representations of SO(2)).
+    """
+    harmonic = torch.arange(head_dim // 2, device=positions.device) % VALUE_HARMONICS
+    rate = harmonic.to(torch.float32) * math.radians(degrees_per_view)  # (E/2,)
+    return positions.to(torch.float32).unsqueeze(-1) * rate
+
+
+def rotate_pairs(x: Tensor, angles: Tensor) -> Tensor:
+    """Rotate channel pairs (2i, 2i+1) of x (..., E) by angles (..., E/2) (broadcast)."""
+    even, odd = x[..., 0::2], x[..., 1::2]
+    cos, sin = angles.cos().to(x.dtype), angles.sin().to(x.dtype)
+    return torch.stack((even * cos - odd * sin, even * sin + odd * cos), dim=-1).flatten(-2)
+
+
 class CausalSelfAttention(nn.Module):
     """Multi-head causal self-attention over views, Performer (linear) or exact softmax.
 
     ``mechanism="performer"``: φ-features with a constant-size memory S (B, H, M, E),
     z (B, H, M). ``mechanism="exact"``: softmax(q·k/√E) with a key/value cache (B, H, T, E).
+
+    With ``config.value_rotation`` (degrees per view, 0 = off) each value is rotated by its own
+    view's angles (:func:`value_angles`) before it enters the memory and the output is rotated
+    back by the current view's, so view s's value reaches view t turned by the offset t − s
+    alone. The memory keeps its size; the angles need only the view index.
     """
 
     def __init__(
@@ -63,6 +91,7 @@ class CausalSelfAttention(nn.Module):
         self.qkv = nn.Linear(config.embed_dim, 3 * config.embed_dim)
         self.out = nn.Linear(config.embed_dim, config.embed_dim)
         self.qk_norm = config.qk_norm
+        self.value_rotation = config.value_rotation
         self.features: FeatureMap | None = None
         if mechanism == "performer":
             self.features = FeatureMap(
@@ -82,15 +111,25 @@ class CausalSelfAttention(nn.Module):
             k = nn.functional.layer_norm(k, (self.head_dim,))
         return q, k, v
 
+    def _angles(self, positions: Tensor) -> Tensor | None:
+        if not self.value_rotation:
+            return None
+        return value_angles(positions, self.head_dim, self.value_rotation)
+
     def forward(self, x: Tensor) -> Tensor:
         """Parallel form: x (B, L, D) -> (B, L, D)."""
         q, k, v = (t.transpose(1, 2) for t in self._heads(x))  # (B, H, L, E)
+        angles = self._angles(torch.arange(x.shape[1], device=x.device))  # (L, E/2)
+        if angles is not None:
+            v = rotate_pairs(v, angles)
         if self.features is not None:
             y = causal_linear_attention(
                 self.features(q, is_query=True), self.features(k, is_query=False), v
             )
         else:
             y = causal_softmax_attention(q, k, v)
+        if angles is not None:
+            y = rotate_pairs(y, -angles)
         y = y.to(x.dtype).transpose(1, 2).flatten(2)  # (B, L, D)
         return self.out(y)
 
@@ -103,9 +142,13 @@ class CausalSelfAttention(nn.Module):
         empty = torch.zeros(batch, self.n_heads, 0, self.head_dim, device=device)
         return {f"{prefix}k": empty, f"{prefix}v": empty.clone()}
 
-    def step(self, x: Tensor, state: State, *, prefix: str) -> tuple[Tensor, State]:
-        """Streaming form: x (B, D) -> (B, D) and this layer's new state entries."""
+    def step(self, x: Tensor, t: Tensor, state: State, *, prefix: str) -> tuple[Tensor, State]:
+        """Streaming form: x (B, D), t 0-d view index -> (B, D) and this layer's new state
+        entries."""
         q, k, v = self._heads(x)  # (B, H, E)
+        angles = self._angles(t)  # (E/2,)
+        if angles is not None:
+            v = rotate_pairs(v, angles)
         if self.features is not None:
             y, s, z = linear_attention_step(
                 self.features(q, is_query=True),
@@ -122,6 +165,8 @@ class CausalSelfAttention(nn.Module):
             weights = torch.softmax(scores * self.head_dim**-0.5, dim=-1)
             y = (weights.unsqueeze(-2) @ values).squeeze(-2)  # (B, H, E)
             new = {f"{prefix}k": keys, f"{prefix}v": values}
+        if angles is not None:
+            y = rotate_pairs(y, -angles)
         return self.out(y.to(x.dtype).flatten(1)), new
 
 
@@ -148,8 +193,8 @@ class Block(nn.Module):
         x = x + self.attn(self.norm1(x))
         return x + self.mlp(self.norm2(x))
 
-    def step(self, x: Tensor, state: State, *, prefix: str) -> tuple[Tensor, State]:
-        a, new = self.attn.step(self.norm1(x), state, prefix=prefix)  # (B, D)
+    def step(self, x: Tensor, t: Tensor, state: State, *, prefix: str) -> tuple[Tensor, State]:
+        a, new = self.attn.step(self.norm1(x), t, state, prefix=prefix)  # (B, D)
         x = x + a
         return x + self.mlp(self.norm2(x)), new
 
@@ -194,7 +239,7 @@ class AttentionTower(nn.Module):
         x = self._position(x, t.expand(x.shape[0]))
         new: State = {}
         for i, block in enumerate(self.blocks):
-            x, entries = block.step(x, state, prefix=f"layer{i}.")
+            x, entries = block.step(x, t, state, prefix=f"layer{i}.")
             new |= entries
         return self.norm(x), new
 

@@ -54,6 +54,7 @@ from completion.grid import jaccard
 from completion.model import (
     DEFAULT_CONFIGS,
     CompletionModel,
+    ModelConfig,
     build_model,
     default_config,
     load_checkpoint,
@@ -143,13 +144,15 @@ def validate(
 
 def warm_start(model: CompletionModel, path: Path) -> None:
     """Start from trained weights: a checkpoint of the same kind and shape loads whole (a new
-    run that fine-tunes it, with its own schedule); a Single-View U-Net initialises both towers'
-    encoders and the decoder of a multi-view model. The context path's output layer then starts
-    at zero, so the model begins exactly as the Single-View model and learns what the memory
-    adds."""
+    run that fine-tunes it, with its own schedule; rotary values may be switched on or off, they
+    have no weights); a Single-View U-Net initialises both towers' encoders and the decoder of
+    a multi-view model. The context path's output layer then starts at zero, so the model
+    begins exactly as the Single-View model and learns what the memory adds."""
     payload = read_checkpoint(path)
     weights = {k: v.float() for k, v in payload["state_dict"].items()}
-    if payload["config"] == model.config.replace(seed=payload["config"]["seed"]).to_dict():
+    saved = ModelConfig.from_dict(payload["config"])
+    same = {"seed": model.config.seed, "value_rotation": model.config.value_rotation}
+    if saved.replace(**same) == model.config:
         model.load_state_dict(weights)
         return
     if payload["config"]["kind"] != "single_view":

@@ -32,15 +32,21 @@ torch.set_num_threads(1)
 G = 40
 ATOL = 1e-5
 
-# (kind, kernel): every model, and MVP with both kernels
+# (kind, kernel, rotary values in degrees per view): every model, MVP with both kernels, and the
+# attention models with rotary values
 VARIANTS = [
-    ("single_view", "softmax"),
-    ("mvp", "softmax"),
-    ("mvp", "relu"),
-    ("mvt", "softmax"),
-    ("lstm", "softmax"),
+    ("single_view", "softmax", 0),
+    ("mvp", "softmax", 0),
+    ("mvp", "relu", 0),
+    ("mvt", "softmax", 0),
+    ("lstm", "softmax", 0),
+    ("mvp", "softmax", 30),
+    ("mvt", "softmax", 30),
 ]
-IDS = [f"{kind}-{kernel}" if kind == "mvp" else kind for kind, kernel in VARIANTS]
+IDS = [
+    (f"{kind}-{kernel}" if kind == "mvp" else kind) + (f"-rot{rot}" if rot else "")
+    for kind, kernel, rot in VARIANTS
+]
 
 
 def tiny_config(kind: str = "mvp", kernel: str = "softmax", **overrides: object) -> ModelConfig:
@@ -94,8 +100,8 @@ def stream(model: CompletionModel, seq: torch.Tensor) -> torch.Tensor:
 
 @pytest.fixture(params=VARIANTS, ids=IDS)
 def tiny_model(request: pytest.FixtureRequest) -> CompletionModel:
-    kind, kernel = request.param
-    return scrambled(tiny_config(kind, kernel))
+    kind, kernel, rotation = request.param
+    return scrambled(tiny_config(kind, kernel, value_rotation=rotation))
 
 
 # ---- the streaming contract -----------------------------------------------------------------
@@ -310,6 +316,10 @@ def test_config_round_trips_through_a_plain_dict() -> None:
         ({"conv_kernel": 5}, "conv_kernel"),
         ({"n_features": 0}, "n_features"),
         ({"norm": "batch"}, "norm must be"),
+        ({"value_rotation": -1}, "value_rotation must be in"),
+        ({"value_rotation": float("nan")}, "value_rotation must be in"),
+        ({"kind": "lstm", "value_rotation": 30}, "needs an attention model"),
+        ({"kind": "single_view", "value_rotation": 30}, "needs an attention model"),
     ],
 )
 def test_bad_config_raises(overrides: dict[str, object], message: str) -> None:
@@ -455,6 +465,37 @@ def test_warm_start_from_the_same_model_loads_it_whole(tmp_path):
     for (name, a), b in zip(source.state_dict().items(), target.state_dict().values(),
                             strict=True):
         torch.testing.assert_close(a.float(), b.float(), msg=name)
+    rotary = build_model(tiny_config("mvp", seed=4, value_rotation=30))
+    warm_start(rotary, tmp_path / "mvp.pt")  # rotary values have no weights: loads whole
+    for (name, a), b in zip(source.state_dict().items(), rotary.state_dict().values(),
+                            strict=True):
+        torch.testing.assert_close(a.float(), b.float(), msg=name)
     other = build_model(tiny_config("mvt"))
     with pytest.raises(ValueError, match="single_view checkpoint or one of this model's"):
         warm_start(other, tmp_path / "mvp.pt")
+
+
+@torch.no_grad()
+def test_rotary_values_turn_each_past_value_by_the_view_offset() -> None:
+    """Exact attention with rotary values: y_t = out(Σ_s w_ts · R(θ_s − θ_t) v_s), where
+    R turns channel pair i by (i mod 7) · 30° per view; and rotate_pairs inverts exactly."""
+    from completion.towers import CausalSelfAttention, rotate_pairs, value_angles
+
+    config = tiny_config("mvt", value_rotation=30, embed_dim=32, n_heads=2)
+    layer = CausalSelfAttention(config, mechanism="exact")
+    g = torch.Generator().manual_seed(0)
+    x = torch.randn(1, 6, 32, generator=g)
+    q, k, v = (t[0].transpose(0, 1) for t in layer._heads(x))  # (H, L, E)
+    e = config.embed_dim // config.n_heads
+    angles = value_angles(torch.arange(6), e, 30.0)  # (L, E/2)
+    assert torch.allclose(angles[1, :8], torch.tensor([0, 1, 2, 3, 4, 5, 6, 0.0]) * torch.pi / 6)
+    scores = (q @ k.transpose(-1, -2)) * e**-0.5
+    weights = scores.masked_fill(torch.ones(6, 6).triu(1).bool(), float("-inf")).softmax(-1)
+    expected = torch.zeros_like(v)
+    for t in range(6):
+        for s_ in range(t + 1):
+            turned = rotate_pairs(v[:, s_], angles[s_] - angles[t])
+            expected[:, t] += weights[:, t, s_, None] * turned
+    expected = layer.out(expected.transpose(0, 1).flatten(1))
+    torch.testing.assert_close(layer(x)[0], expected, atol=1e-5, rtol=0)
+    torch.testing.assert_close(rotate_pairs(rotate_pairs(v, angles), -angles), v, atol=1e-6, rtol=0)
