@@ -63,6 +63,7 @@ from completion.model import (
 )
 from completion.scenes import CONDITIONS
 
+AUGMENTATIONS = ("mirror", "roll", "none")
 THRESHOLDS = tuple(round(x, 2) for x in np.arange(0.2, 0.81, 0.05))
 
 
@@ -102,11 +103,21 @@ def unpack(packed: np.ndarray) -> tuple[torch.Tensor, torch.Tensor]:
     return grids[:, 0], grids[:, 1]
 
 
-def augment(x: torch.Tensor, y: torch.Tensor, gen: torch.Generator):
-    """Mirror each sequence in the camera's x and/or y axis (grid axes i, j), all views alike;
-    never z, the viewing direction, which decides what is seen and what is hidden."""
-    flips = torch.randint(0, 2, (len(x), 2), generator=gen)
-    for b, (fx, fy) in enumerate(flips.tolist()):
+def augment(x: torch.Tensor, y: torch.Tensor, gen: torch.Generator, mode: str = "mirror"):
+    """Random symmetries of the camera frame, per sequence, all views alike; never a flip of z,
+    the viewing direction, which decides what is seen and what is hidden.
+
+    ``mirror``: flip x and/or y (grid axes i, j). ``roll``: flip both or neither, a 180° roll
+    about the viewing axis: a proper rotation, so the sense in which the camera circles the
+    object is kept (a mirror reverses it, which rotary values cannot follow).
+    """
+    if mode not in AUGMENTATIONS:
+        raise ValueError(f"augmentation must be one of {AUGMENTATIONS}, got {mode!r}")
+    if mode == "none":
+        return x, y
+    flips = torch.randint(0, 2, (len(x), 2 if mode == "mirror" else 1), generator=gen)
+    for b, picks in enumerate(flips.tolist()):
+        fx, fy = picks if mode == "mirror" else picks * 2
         dims = [d for d, f in ((1, fx), (2, fy)) if f]  # axes of one (L, G, G, G) sequence
         if dims:
             x[b], y[b] = x[b].flip(dims), y[b].flip(dims)
@@ -314,8 +325,7 @@ def _train(args: argparse.Namespace, world: World, device: torch.device) -> dict
         idx = part[pick]
         first = int(torch.randint(0, full_views - args.views + 1, (1,), generator=gen))
         x, y = unpack(train_set["packed"][idx, :, first : first + args.views])
-        if args.augment:
-            x, y = augment(x, y, gen)
+        x, y = augment(x, y, gen, args.augment)
         x, local = mask_views(x, gen, hide=args.hide_views, blank_local=args.blank_local)
         x, y = x.to(device), y.to(device)
         local = None if local is None else local.to(device)
@@ -546,8 +556,11 @@ def main(argv: list[str] | None = None) -> int:
                    help="start a multi-view model from a trained single_view checkpoint")
     p.add_argument("--precision", choices=("fp32", "bf16"), default="fp32",
                    help="bf16 autocast for the convolutions (fp32 master weights)")
-    p.add_argument("--no-augment", dest="augment", action="store_false",
-                   help="no random x/y mirroring of training sequences")
+    p.add_argument("--augment", choices=AUGMENTATIONS, default="mirror",
+                   help="random symmetry of each training sequence: mirror (x and/or y), roll "
+                   "(x and y together: keeps the sense of a camera pan) or none")
+    p.add_argument("--no-augment", dest="augment", action="store_const", const="none",
+                   help="same as --augment none")
     p.add_argument("--blank-local", type=float, default=0.0, metavar="P",
                    help="multi-view models: hide each training view from the local tower with "
                    "probability P (the context tower still sees it), so that the memory path "

@@ -225,3 +225,28 @@ def test_mask_views_hides_later_views_from_both_towers_and_blanks_the_local_one(
     assert ((ctx == 1) & (loc == 0)).any()  # and some the context sees are blank for the local
     again = mask_views(x, torch.Generator().manual_seed(1), hide=0.5, blank_local=0.5)
     assert torch.equal(again[0], seen) and torch.equal(again[1], local)  # seeded
+
+
+def test_augment_mirrors_or_rolls_whole_sequences_and_never_flips_z():
+    import torch
+
+    from completion.train import augment
+
+    x = torch.rand(32, 3, 6, 6, 6)
+    originals = {
+        "identity": x, "x": x.flip(2), "y": x.flip(3), "roll": x.flip([2, 3]), "z": x.flip(4),
+    }
+
+    def kinds(out):  # which symmetry each sequence got (targets alike)
+        found = []
+        for b in range(len(x)):
+            found.append(next(k for k, v in originals.items() if torch.equal(out[b], v[b])))
+        return found
+
+    for mode, allowed in (("mirror", {"identity", "x", "y", "roll"}),
+                          ("roll", {"identity", "roll"}), ("none", {"identity"})):
+        a, b = augment(x.clone(), x.clone(), torch.Generator().manual_seed(0), mode)
+        got = kinds(a)
+        assert got == kinds(b) and set(got) == allowed, (mode, set(got))
+    with pytest.raises(ValueError, match="augmentation must be one of"):
+        augment(x, x, torch.Generator(), "rotate")
