@@ -179,16 +179,23 @@ def warm_start(model: CompletionModel, path: Path) -> None:
 
 
 def mask_views(
-    x: torch.Tensor, gen: torch.Generator, *, hide: float = 0.0, blank_local: float = 0.0
+    x: torch.Tensor,
+    gen: torch.Generator,
+    *,
+    hide: float = 0.0,
+    blank_local: float = 0.0,
+    hide_context: float = 0.0,
 ) -> tuple[torch.Tensor, torch.Tensor | None]:
     """Training-time view masking of a batch ``x`` (B, L, G, G, G); the targets never change.
 
     ``hide``: each view after the first becomes empty for both towers with this probability, so
     only the memory of earlier views can say what it holds (``--hide-views``). ``blank_local``:
     each view becomes empty for the local tower alone, the context tower still sees it
-    (``--blank-local``). Returns (what the context tower sees, what the local tower sees or None
-    for the same). Draws from ``gen`` only for the options that are on, so runs without them
-    keep their random stream.
+    (``--blank-local``). ``hide_context``: each view after the first becomes empty for the context
+    tower alone, the local tower still sees it, so the memory's part of that view must come from
+    earlier views and be merged with what the current one shows (``--hide-context``). Returns
+    (what the context tower sees, what the local tower sees or None for the same). Draws from
+    ``gen`` only for the options that are on, so runs without them keep their random stream.
     """
     if hide:
         hidden = torch.rand(x.shape[:2], generator=gen) < hide
@@ -198,6 +205,11 @@ def mask_views(
     if blank_local:
         keep = torch.rand(x.shape[:2], generator=gen) >= blank_local
         local = x * keep[..., None, None, None]
+    if hide_context:
+        covered = torch.rand(x.shape[:2], generator=gen) < hide_context
+        covered[:, 0] = False
+        local = x if local is None else local
+        x = x * ~covered[..., None, None, None]
     return x, local
 
 
@@ -326,7 +338,8 @@ def _train(args: argparse.Namespace, world: World, device: torch.device) -> dict
         first = int(torch.randint(0, full_views - args.views + 1, (1,), generator=gen))
         x, y = unpack(train_set["packed"][idx, :, first : first + args.views])
         x, y = augment(x, y, gen, args.augment)
-        x, local = mask_views(x, gen, hide=args.hide_views, blank_local=args.blank_local)
+        x, local = mask_views(x, gen, hide=args.hide_views, blank_local=args.blank_local,
+                              hide_context=args.hide_context)
         x, y = x.to(device), y.to(device)
         local = None if local is None else local.to(device)
         for group in opt.param_groups:  # cosine decay to a tenth over the step budget
@@ -569,12 +582,17 @@ def main(argv: list[str] | None = None) -> int:
                    help="multi-view models: blank each training view after the first from both "
                    "towers with probability P (the target stays), so that the memory must carry "
                    "earlier views' shape into the current view's frame; 0 = off")
+    p.add_argument("--hide-context", type=float, default=0.0, metavar="P",
+                   help="multi-view models: blank each training view after the first from the "
+                   "context tower alone with probability P (the local tower still sees it), so "
+                   "that the memory of earlier views must be merged with the current view; "
+                   "0 = off")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     args = p.parse_args(argv)
     for name in ("views", "steps", "val_every", "batch_size", "threads"):
         if getattr(args, name) < 1:
             p.error(f"--{name.replace('_', '-')} must be ≥ 1, got {getattr(args, name)}")
-    for flag in ("blank_local", "hide_views"):  # the two view-masking probabilities
+    for flag in ("blank_local", "hide_views", "hide_context"):  # view-masking probabilities
         value, name = getattr(args, flag), "--" + flag.replace("_", "-")
         if not 0.0 <= value < 1.0:
             p.error(f"{name} must be in [0, 1), got {value}")

@@ -98,6 +98,9 @@ def test_bad_arguments_are_explained(capsys):
         main(["--model", "single_view", "--hide-views", "0.2", "--out", "x.pt"])
     assert "--hide-views needs a multi-view model" in capsys.readouterr().err
     with pytest.raises(SystemExit):
+        main(["--model", "lstm", "--hide-context", "1", "--out", "x.pt"])
+    assert "--hide-context must be in [0, 1)" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
         main(["--model", "mvp", "--jaccard-weight", "-1", "--out", "x.pt"])
     assert "--jaccard-weight must be a finite number ≥ 0" in capsys.readouterr().err
     with pytest.raises(SystemExit):
@@ -225,6 +228,11 @@ def test_mask_views_hides_later_views_from_both_towers_and_blanks_the_local_one(
     assert ((ctx == 1) & (loc == 0)).any()  # and some the context sees are blank for the local
     again = mask_views(x, torch.Generator().manual_seed(1), hide=0.5, blank_local=0.5)
     assert torch.equal(again[0], seen) and torch.equal(again[1], local)  # seeded
+    ctx, local = mask_views(x, torch.Generator().manual_seed(2), hide_context=0.5)
+    assert torch.equal(local, x)  # the local tower sees every view
+    per_view = ctx.flatten(2).amax(-1)
+    assert per_view[:, 0].eq(1).all() and 0.35 < 1 - per_view[:, 1:].mean() < 0.65
+    assert torch.equal(ctx, x * per_view[..., None, None, None])
 
 
 def test_augment_mirrors_or_rolls_whole_sequences_and_never_flips_z():
