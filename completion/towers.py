@@ -2,7 +2,9 @@
 
 A view's token gets a sinusoidal encoding of its index and goes through causal Transformer
 blocks, Performer (FAVOR+ or ReLU kernel, constant-size memory) for ``mvp``, exact softmax
-attention with a key/value cache for ``mvt``, or an LSTM for ``lstm``. Each has a parallel
+attention with a key/value cache for ``mvt``, or an LSTM for ``lstm``. The attention towers may turn
+each value by its view index (rotary values, ``ModelConfig.value_rotation``), so that the memory
+can hand a past view's features to the current view rotated by the view offset. Each has a parallel
 ``forward`` over (B, L, D) and a streaming ``step`` over (B, D) with a flat state dict; both give
 the same numbers. Shapes use the axis letters of :mod:`completion.model`.
 """
