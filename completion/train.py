@@ -166,9 +166,9 @@ def warm_start(model: CompletionModel, path: Path) -> None:
     if saved.replace(**same) == model.config:
         model.load_state_dict(weights)
         return
-    if payload["config"]["kind"] != "single_view":
+    if saved.kind != "single_view":
         raise ValueError(f"--init-from needs a single_view checkpoint or one of this model's "
-                         f"config, {path} is {payload['config']['kind']}")
+                         f"config, {path} is {saved.kind}")
     for name in ("encoder", "decoder", "context_encoder"):
         part = getattr(model, name)
         if part is None:
@@ -197,19 +197,20 @@ def mask_views(
     (what the context tower sees, what the local tower sees or None for the same). Draws from
     ``gen`` only for the options that are on, so runs without them keep their random stream.
     """
+    def later_views(p: float) -> torch.Tensor:  # (B, L, 1, 1, 1): drawn, never the first view
+        drawn = torch.rand(x.shape[:2], generator=gen) < p
+        drawn[:, 0] = False  # the first view has no memory to draw on
+        return drawn[..., None, None, None]
+
     if hide:
-        hidden = torch.rand(x.shape[:2], generator=gen) < hide
-        hidden[:, 0] = False  # the first view has no memory to draw on
-        x = x * ~hidden[..., None, None, None]
+        x = x * ~later_views(hide)
     local = None
     if blank_local:
         keep = torch.rand(x.shape[:2], generator=gen) >= blank_local
         local = x * keep[..., None, None, None]
     if hide_context:
-        covered = torch.rand(x.shape[:2], generator=gen) < hide_context
-        covered[:, 0] = False
         local = x if local is None else local
-        x = x * ~covered[..., None, None, None]
+        x = x * ~later_views(hide_context)
     return x, local
 
 
