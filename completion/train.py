@@ -11,7 +11,8 @@ Shards are read from ``--train-dir`` / ``--val-dir``; sequences that are missing
 first (``--train-count`` per condition with seed ``--data-seed`` for training, ``--val-count``
 with seed 0 for validation). Loss: binary cross-entropy with logits and ``pos_weight``, plus
 ``--jaccard-weight`` × (1 − soft Jaccard) per view when asked (the evaluation's metric is the
-Jaccard of each view, which BCE weighs by object size instead); Adam with
+Jaccard of each view, which BCE weighs by object size instead), the views weighed alike or,
+with ``--late-weight``, more the later they come; Adam with
 a cosine decay over ``--steps`` (the budget: the same command repeats the same run);
 ``--minutes`` only caps the wall time. Each step draws ``--batch-size`` sequences (a window of
 ``--views`` consecutive views) and mirrors each in the camera's x and/or y axis. Every
@@ -214,15 +215,30 @@ def mask_views(
     return x, local
 
 
-def soft_jaccard_loss(logits: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+def soft_jaccard_loss(
+    logits: torch.Tensor, target: torch.Tensor, weights: torch.Tensor | None = None
+) -> torch.Tensor:
     """Mean over views of 1 − soft Jaccard (probabilities for the prediction, one voxel of
-    smoothing); ``logits`` and ``target`` are (..., D, H, W) with one view per leading index.
+    smoothing); ``logits`` and ``target`` are (..., D, H, W) with one view per leading index,
+    ``weights`` (broadcast over the leading indices) weighs the views' terms.
     On binary predictions it is 1 − the Jaccard the evaluation scores."""
     p = torch.sigmoid(logits).flatten(-3)
     t = target.flatten(-3)
     inter = (p * t).sum(-1)
     union = p.sum(-1) + t.sum(-1) - inter
-    return (1 - (inter + 1) / (union + 1)).mean()
+    per_view = 1 - (inter + 1) / (union + 1)
+    return (per_view if weights is None else per_view * weights).mean()
+
+
+def view_weights(views: int, late: float) -> torch.Tensor:
+    """(views,) loss weights rising linearly from the first view to the last, ``late`` times the
+    first's, normalised to mean 1 (``--late-weight``; 1 = every view alike). In a pan the views
+    are alike for the local tower (the start angle is random), so what a later view gains over an
+    earlier one comes from the memory: the tilt weighs the memory's part of the gradient."""
+    if views == 1:
+        return torch.ones(1)
+    ramp = 1 + (late - 1) * torch.arange(views, dtype=torch.float32) / (views - 1)
+    return ramp / ramp.mean()
 
 
 def train(args: argparse.Namespace) -> dict:
@@ -308,6 +324,7 @@ def _train(args: argparse.Namespace, world: World, device: torch.device) -> dict
     from tqdm import tqdm
 
     pos_weight = torch.tensor(args.pos_weight, device=device)
+    weights = view_weights(args.views, args.late_weight).to(device)
     tic = time.perf_counter()
     budget_s = args.minutes * 60 if args.minutes else float("inf")
     autocast = torch.autocast(device.type, dtype=torch.bfloat16, enabled=args.precision == "bf16")
@@ -347,9 +364,15 @@ def _train(args: argparse.Namespace, world: World, device: torch.device) -> dict
             group["lr"] = args.lr * (0.1 + 0.45 * (1 + math.cos(math.pi * step / args.steps)))
         with autocast:
             logits = net(x, local=local)
-        loss = F.binary_cross_entropy_with_logits(logits.float(), y, pos_weight=pos_weight)
+        if args.late_weight == 1:
+            loss = F.binary_cross_entropy_with_logits(logits.float(), y, pos_weight=pos_weight)
+        else:  # per-view mean, weighed along the sequence
+            loss = (F.binary_cross_entropy_with_logits(logits.float(), y, pos_weight=pos_weight,
+                                                       reduction="none").mean((-3, -2, -1))
+                    * weights).mean()  # fmt: skip
         if args.jaccard_weight:
-            loss = loss + args.jaccard_weight * soft_jaccard_loss(logits.float(), y)
+            loss = loss + args.jaccard_weight * soft_jaccard_loss(
+                logits.float(), y, None if args.late_weight == 1 else weights)
         opt.zero_grad(set_to_none=True)
         step += 1
         bar.update()
@@ -588,6 +611,10 @@ def main(argv: list[str] | None = None) -> int:
                    "context tower alone with probability P (the local tower still sees it), so "
                    "that the memory of earlier views must be merged with the current view; "
                    "0 = off")
+    p.add_argument("--late-weight", type=float, default=1.0, metavar="W",
+                   help="multi-view models: the last view's loss weighs W times the first's, "
+                   "linear in between (mean 1), so that the gradient favours what the memory adds "
+                   "as views accumulate; 1 = every view alike")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     args = p.parse_args(argv)
     for name in ("views", "steps", "val_every", "batch_size", "threads"):
@@ -599,6 +626,10 @@ def main(argv: list[str] | None = None) -> int:
             p.error(f"{name} must be in [0, 1), got {value}")
         if value and args.model == "single_view":
             p.error(f"{name} needs a multi-view model (single_view has no context tower)")
+    if not (1.0 <= args.late_weight <= 10.0):
+        p.error(f"--late-weight must be in [1, 10], got {args.late_weight}")
+    if args.late_weight != 1 and args.model == "single_view":
+        p.error("--late-weight needs a multi-view model (single_view has no memory)")
     if not (args.jaccard_weight >= 0 and math.isfinite(args.jaccard_weight)):
         p.error(f"--jaccard-weight must be a finite number ≥ 0, got {args.jaccard_weight}")
     if not 0.0 <= args.ema < 1.0:

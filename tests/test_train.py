@@ -1,4 +1,5 @@
 import json
+import math
 
 import pytest
 
@@ -177,6 +178,32 @@ def test_torchrun_two_processes_write_one_checkpoint_that_loads(shards, tmp_path
     assert resumed.returncode == 0, resumed.stdout + resumed.stderr
     assert "resumed from" in resumed.stdout and json.loads(
         [x for x in resumed.stdout.splitlines() if x.startswith("{")][0])["steps"] == 6
+
+
+def test_view_weights_rise_linearly_to_the_late_weight_with_mean_one():
+    import torch
+
+    from completion.train import view_weights
+
+    w = view_weights(12, 3.0)
+    assert w.shape == (12,) and abs(float(w.mean()) - 1) < 1e-6
+    assert abs(float(w[-1] / w[0]) - 3) < 1e-5 and bool((w.diff() > 0).all())
+    assert torch.equal(view_weights(5, 1.0), torch.ones(5)) and view_weights(1, 4.0).tolist() == [1]
+
+
+def test_late_weight_trains_and_rejects_bad_values(shards, tmp_path, capsys):
+    args = ["--model", "mvp", "--views", "3", "--train-dir", str(shards / "train"),
+            "--val-dir", str(shards / "val"), "--train-count", "0", "--val-count", "0",
+            "--steps", "2", "--val-every", "2", "--config", TINY, "--jaccard-weight", "0.5",
+            "--late-weight", "3", "--out", str(tmp_path / "late.pt"), "--quiet"]
+    assert main(args) == 0
+    summary = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert summary["steps"] == 2 and math.isfinite(summary["history"][-1]["loss"])
+    for bad in (["--model", "mvp", "--late-weight", "0.5"],
+                ["--model", "single_view", "--late-weight", "2"]):
+        with pytest.raises(SystemExit):
+            main([*bad, "--out", "x.pt"])
+        assert "--late-weight" in capsys.readouterr().err
 
 
 def test_soft_jaccard_loss_is_one_minus_the_jaccard_on_sure_predictions():
