@@ -249,6 +249,13 @@ def test_tiny_run_writes_its_reports(tiny_run):
                                    ["test"] * 4 / 3, abs=1e-3)  # the spreads never differ
     per_view = results["per_view_jaccard"]["mvp"]["object_hiding"]["test"]
     assert len(per_view) == 3
+    # the first view has no memory to draw on: MVP and its memory-off row see the same thing
+    for condition in CONDITIONS:
+        for split in ("train", "test"):
+            views = results["per_view_jaccard"]
+            assert views[ev.MEMORY_OFF][condition][split][0] == pytest.approx(
+                views["mvp"][condition][split][0], abs=1e-6), condition
+    assert "MVP, memory off" in report
     records = [r for r in results["per_object"] if r["table"] == "main"]
     assert len(records) == len(CONDITIONS) * 2 * len(ev.ROWS)
     for kind in ("wall", "cpu"):
@@ -458,6 +465,30 @@ def test_jaccard_precision_gives_standard_errors_paired_differences_and_the_rise
     report = ev.markdown_report(ev.build_results(results, settings, {"sequences": 1.0}))
     assert "| MVP | 0.475 ± 0.175 |" in report
     assert "| MVP | +0.225 ± 0.025 |" in report and "| MVP | +0.150 ± 0.150 |" in report
+    assert "vs_memory_off" not in mvp and "What the memory adds" not in report
+
+
+def test_memory_off_row_pairs_mvp_with_itself_view_by_view():
+    def record(index, mvp, off):
+        job = ev.Job(ev.MAIN_TABLE, "camera_pan", "test", index, grasp=False)
+        per_view = {row: {"jaccard": j, "fscore_1": [0.0] * 6, "fscore_2": [0.0] * 6}
+                    for row, j in (("mvp", mvp), (ev.MEMORY_OFF, off))}
+        result = SequenceResult(job, ["proc/box/1"], per_view, {})
+        result.ceiling = {"fscore_1": [1.0], "fscore_2": [1.0]}
+        return result
+
+    results = [
+        record(0, [0.5, 0.5, 0.5, 0.8, 0.8, 0.8], [0.5] * 6),  # +0.15, rise +0.3
+        record(1, [0.3] * 6, [0.3] * 6),  # memory adds nothing
+    ]
+    settings = ev.Settings(rows=("mvp", ev.MEMORY_OFF), model_paths=(("mvp", "b.pt"),))
+    mvp = aggregate(results, settings, ev.MAIN_TABLE)["jaccard_precision"]["mvp"]["camera_pan"]
+    assert mvp["test"]["vs_memory_off"]["mean"] == pytest.approx(0.075)
+    assert mvp["test"]["rise_vs_memory_off"]["mean"] == pytest.approx(0.15)
+    report = ev.markdown_report(ev.build_results(results, settings, {"sequences": 1.0}))
+    assert "What the memory adds" in report and "| Rise | +0.150 ± 0.150 |" in report
+    with pytest.raises(ValueError, match="mvp"):  # the row runs the MVP checkpoint
+        ev.Settings(rows=(ev.MEMORY_OFF,), model_paths=())
 
 
 def test_nothing_prints_pybullet_noise(tmp_path):

@@ -15,7 +15,9 @@ is scored against its ground truth:
   mesh"; we take the object's own mesh rather than a marching-cubes mesh of the 40³ target so
   that the error measures the completion, not the voxelisation of the ground truth.
 
-Rows: the six models of the paper (single_view, mvp, mvt, lstm, mvp3, mvp6) and two references:
+Rows: the six models of the paper (single_view, mvp, mvt, lstm, mvp3, mvp6) and three
+references: ``mvp_memory_off``, the shipped MVP given each view alone (a fresh memory every view:
+MVP minus this row on the same sequences is what the memory adds, apart from training),
 ``prior``, one fixed shape per condition placed in every view's grid whatever the input
 (:mod:`completion.prior`: what the grid's fit alone gives), and ``registered_fusion``, the union
 of every view's observed voxels so far, mapped into the latest view's grid with the known camera
@@ -61,6 +63,7 @@ from grasp.evaluate.config import (
     CONDITIONS,
     FUSION,
     MAIN_TABLE,
+    MEMORY_OFF,
     MODEL_NAMES,
     PRESETS,
     PRIOR,
@@ -76,6 +79,7 @@ __all__ = [
     "CONDITIONS",
     "FUSION",
     "MAIN_TABLE",
+    "MEMORY_OFF",
     "MODEL_NAMES",
     "PRESETS",
     "PRIOR",

@@ -13,6 +13,7 @@ from grasp.evaluate.config import (
     FSCORE_METRICS,
     GRASP_SUCCESS,
     MAIN_TABLE,
+    MEMORY_OFF,
     METRICS,
     NAMED_OBJECTS_TABLE,
     OBJECT_TABLE_CONDITION,
@@ -50,7 +51,9 @@ def _precision(seqs: list[SequenceResult], row: str, rows: tuple[str, ...]) -> d
     sequences (much tighter than two unpaired SEs); ``rise`` the mean of the last three views
     minus the first three per sequence (> 0: the curve rises, as working memory should), and
     ``rise_vs_single_view`` that rise minus Single-View's on the same sequence (what is left
-    once the views' own difficulty, which both see, is taken out)."""
+    once the views' own difficulty, which both see, is taken out). For MVP with its memory-off
+    row present, ``vs_memory_off`` and ``rise_vs_memory_off`` pair it with that row the same way:
+    what the memory alone adds."""
 
     def rise(v: np.ndarray) -> float:
         return v[-3:].mean() - v[:3].mean()
@@ -63,10 +66,17 @@ def _precision(seqs: list[SequenceResult], row: str, rows: tuple[str, ...]) -> d
              for v, r in zip(own, seqs, strict=True)] if paired else []
     if paired:
         out["vs_single_view"] = mean_and_se(v.mean() - w.mean() for v, w in pairs)
-    if own and min(v.size for v in own) >= 6:
+    long = bool(own) and min(v.size for v in own) >= 6
+    if long:
         out["rise"] = mean_and_se(rise(v) for v in own)
         if paired:
             out["rise_vs_single_view"] = mean_and_se(rise(v) - rise(w) for v, w in pairs)
+    if row == "mvp" and MEMORY_OFF in rows:
+        off = [(v, np.asarray(r.per_view[MEMORY_OFF]["jaccard"]))
+               for v, r in zip(own, seqs, strict=True)]
+        out["vs_memory_off"] = mean_and_se(v.mean() - w.mean() for v, w in off)
+        out["rise_vs_memory_off"] = (mean_and_se(rise(v) - rise(w) for v, w in off)
+                                     if long else None)  # fmt: skip
     return out
 
 

@@ -11,8 +11,11 @@ MODEL_NAMES: tuple[str, ...] = ("single_view", "mvp", "mvt", "lstm", "mvp3", "mv
 #: The input-free reference row (:mod:`completion.prior`): a fixed shape in every view's grid.
 PRIOR = "prior"
 FUSION = "registered_fusion"
-#: Rows that are not learned models (no checkpoint; never bold in the tables).
-REFERENCE_ROWS: tuple[str, ...] = (PRIOR, FUSION)
+#: The ablation row: the shipped MVP given each view alone (a fresh memory every view), so that
+#: MVP minus this row, on the same sequences, is what the memory adds and nothing else.
+MEMORY_OFF = "mvp_memory_off"
+#: Rows that are not learned models of their own (never bold in the tables).
+REFERENCE_ROWS: tuple[str, ...] = (MEMORY_OFF, PRIOR, FUSION)
 ROWS: tuple[str, ...] = (*MODEL_NAMES, *REFERENCE_ROWS)
 ROW_LABELS = {
     "single_view": "Single-View",
@@ -21,6 +24,7 @@ ROW_LABELS = {
     "lstm": "LSTM",
     "mvp3": "MVP3",
     "mvp6": "MVP6",
+    MEMORY_OFF: "MVP, memory off: each view alone (ref.)",
     PRIOR: "Prior, ignores the input (ref.)",
     FUSION: "Registered fusion (ref.)",
     "true_mesh": "True mesh (planned on the truth)",
@@ -182,7 +186,9 @@ class Settings:
         bad = [c for c in self.conditions if c not in CONDITIONS]
         if bad:
             raise ValueError(f"conditions must be among {CONDITIONS}, got {bad}")
-        missing = [r for r in self.rows if r in MODEL_NAMES and r not in dict(self.model_paths)]
+        needed = [r for r in self.rows if r in MODEL_NAMES] + (["mvp"] if MEMORY_OFF in self.rows
+                                                              else [])  # fmt: skip
+        missing = [r for r in needed if r not in dict(self.model_paths)]
         if missing:
             raise ValueError(f"no checkpoint path given for model rows {missing}")
         if PRIOR in self.rows and not self.prior_path:

@@ -202,7 +202,23 @@ def markdown_precision(results: dict, split: str = "test") -> list[str]:
         "",
         *table("rise_vs_single_view", signed=True),
         "",
+        *_memory_table(precision, conditions, split),
     ]
+
+
+def _memory_table(precision: dict, conditions: list[str], split: str) -> list[str]:
+    """MVP minus its memory-off row, paired: the Jaccard and the rise the memory alone adds."""
+    cells = precision.get("mvp", {})
+    if not any(cells.get(c, {}).get(split, {}).get("vs_memory_off") for c in conditions):
+        return []
+    lines = ["What the memory adds: MVP minus MVP with its memory off, on the same sequences "
+             "(paired):", "",
+             "| | " + " | ".join(CONDITION_LABELS[c] for c in conditions) + " |",
+             "|---|" + "---|" * len(conditions)]
+    for key, label in (("vs_memory_off", "Jaccard"), ("rise_vs_memory_off", "Rise")):
+        lines.append(f"| {label} | " + " | ".join(
+            _pm(cells.get(c, {}).get(split, {}).get(key), signed=True) for c in conditions) + " |")
+    return [*lines, ""]
 
 
 def _markdown_grasp_success(results: dict) -> list[str]:
@@ -246,6 +262,10 @@ def how_to_read(results: dict) -> list[str]:
         "(`python -m completion.prior`). It never looks at the input: it shows what the grid's "
         "fit alone gives (the fit already says where the object is and how big). A model is "
         "worth what it adds over this row.",
+        "- **MVP, memory off (ablation reference).** The shipped MVP run on each view alone, "
+        "its memory empty every view. MVP minus Single-View mixes what the memory adds with how "
+        "differently the two were trained; MVP minus this row, on the same sequences, is the "
+        "memory's part alone (the last table of the precision section).",
         "- **Registered fusion row.** The union of every view's observed voxels so far, carried "
         "into the current grid with the known camera poses: what a calibrated arm gets with no "
         "network. It assumes a static scene, so it smears the moving object of slide behind.",

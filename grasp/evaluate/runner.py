@@ -24,6 +24,7 @@ from grasp.evaluate.config import (
     FOLDER_TABLE,
     FUSION,
     MAIN_TABLE,
+    MEMORY_OFF,
     NAMED_OBJECTS_TABLE,
     OBJECT_TABLE_CONDITION,
     PRIOR,
@@ -166,7 +167,7 @@ class Evaluator:
         self.models = {}
         self.thresholds: dict[str, float] = {}
         for name, path in settings.model_paths:
-            if name not in settings.rows:
+            if name not in settings.rows and not (name == "mvp" and MEMORY_OFF in settings.rows):
                 continue
             model = load_model(path).eval()
             # the validation-chosen decision threshold: an attribute of the loaded model, or the
@@ -178,6 +179,8 @@ class Evaluator:
             self.models[name] = model
         self.prior = load_prior(settings.prior_path) if PRIOR in settings.rows else None
         self.thresholds[FUSION] = 0.5  # a bool grid: meshed between empty and occupied
+        if MEMORY_OFF in settings.rows:
+            self.thresholds[MEMORY_OFF] = self.thresholds["mvp"]
         self._torch = torch
 
     def close(self) -> None:
@@ -203,6 +206,8 @@ class Evaluator:
                 elif name == PRIOR:
                     assert self.prior is not None
                     out[name] = self.prior.probabilities(seq.meta["condition"], len(seq))
+                elif name == MEMORY_OFF:  # the L views as L sequences of one view each
+                    out[name] = torch.sigmoid(self.models["mvp"](x[0][:, None]))[:, 0].numpy()
                 else:
                     out[name] = torch.sigmoid(self.models[name](x))[0].numpy()
         return out
