@@ -324,7 +324,10 @@ def _train(args: argparse.Namespace, world: World, device: torch.device) -> dict
     from tqdm import tqdm
 
     pos_weight = torch.tensor(args.pos_weight, device=device)
-    weights = view_weights(args.views, args.late_weight).to(device)
+    # per-view loss weights along the sequence; None: the plain mean (the runs before the option)
+    weights = None
+    if args.late_weight != 1:
+        weights = view_weights(args.views, args.late_weight).to(device)
     tic = time.perf_counter()
     budget_s = args.minutes * 60 if args.minutes else float("inf")
     autocast = torch.autocast(device.type, dtype=torch.bfloat16, enabled=args.precision == "bf16")
@@ -364,15 +367,14 @@ def _train(args: argparse.Namespace, world: World, device: torch.device) -> dict
             group["lr"] = args.lr * (0.1 + 0.45 * (1 + math.cos(math.pi * step / args.steps)))
         with autocast:
             logits = net(x, local=local)
-        if args.late_weight == 1:
+        if weights is None:
             loss = F.binary_cross_entropy_with_logits(logits.float(), y, pos_weight=pos_weight)
         else:  # per-view mean, weighed along the sequence
             loss = (F.binary_cross_entropy_with_logits(logits.float(), y, pos_weight=pos_weight,
                                                        reduction="none").mean((-3, -2, -1))
                     * weights).mean()  # fmt: skip
         if args.jaccard_weight:
-            loss = loss + args.jaccard_weight * soft_jaccard_loss(
-                logits.float(), y, None if args.late_weight == 1 else weights)
+            loss = loss + args.jaccard_weight * soft_jaccard_loss(logits.float(), y, weights)
         opt.zero_grad(set_to_none=True)
         step += 1
         bar.update()

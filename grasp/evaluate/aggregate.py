@@ -59,24 +59,22 @@ def _precision(seqs: list[SequenceResult], row: str, rows: tuple[str, ...]) -> d
         return v[-3:].mean() - v[:3].mean()
 
     own = [np.asarray(r.per_view[row]["jaccard"]) for r in seqs]
-    out = {"cell": mean_and_se(v.mean() for v in own), "vs_single_view": None, "rise": None,
-           "rise_vs_single_view": None}
-    paired = row != "single_view" and "single_view" in rows
-    pairs = [(v, np.asarray(r.per_view["single_view"]["jaccard"]))
-             for v, r in zip(own, seqs, strict=True)] if paired else []
-    if paired:
-        out["vs_single_view"] = mean_and_se(v.mean() - w.mean() for v, w in pairs)
     long = bool(own) and min(v.size for v in own) >= 6
-    if long:
-        out["rise"] = mean_and_se(rise(v) for v in own)
-        if paired:
-            out["rise_vs_single_view"] = mean_and_se(rise(v) - rise(w) for v, w in pairs)
+    out = {"cell": mean_and_se(v.mean() for v in own),
+           "rise": mean_and_se(rise(v) for v in own) if long else None}
+
+    def versus(other: str, key: str) -> None:  # paired with another row on the same sequences
+        pairs = [(v, np.asarray(r.per_view[other]["jaccard"]))
+                 for v, r in zip(own, seqs, strict=True)]
+        out[f"vs_{key}"] = mean_and_se(v.mean() - w.mean() for v, w in pairs)
+        out[f"rise_vs_{key}"] = (mean_and_se(rise(v) - rise(w) for v, w in pairs)
+                                 if long else None)  # fmt: skip
+
+    out["vs_single_view"] = out["rise_vs_single_view"] = None
+    if row != "single_view" and "single_view" in rows:
+        versus("single_view", "single_view")
     if row == "mvp" and MEMORY_OFF in rows:
-        off = [(v, np.asarray(r.per_view[MEMORY_OFF]["jaccard"]))
-               for v, r in zip(own, seqs, strict=True)]
-        out["vs_memory_off"] = mean_and_se(v.mean() - w.mean() for v, w in off)
-        out["rise_vs_memory_off"] = (mean_and_se(rise(v) - rise(w) for v, w in off)
-                                     if long else None)  # fmt: skip
+        versus(MEMORY_OFF, "memory_off")
     return out
 
 

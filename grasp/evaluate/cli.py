@@ -13,7 +13,7 @@ from completion.objects import load_object, objects_in_folder
 from completion.prior import PRIOR_FILE
 from completion.scenes import CONDITIONS, VIEWS
 from grasp.evaluate.aggregate import build_results
-from grasp.evaluate.config import MEMORY_OFF, MODEL_NAMES, PRESETS, PRIOR, ROWS, Settings
+from grasp.evaluate.config import PRESETS, PRIOR, ROWS, Settings, checkpoints_needed
 from grasp.evaluate.figures import write_figures
 from grasp.evaluate.report import markdown_report
 from grasp.evaluate.runner import make_jobs, run_jobs
@@ -155,8 +155,7 @@ def settings_from_args(args: argparse.Namespace, parser: argparse.ArgumentParser
     preset = PRESETS[args.preset]
     weights = args.weights if args.weights is not None else WEIGHTS_DIR
     paths = []
-    off = MEMORY_OFF in args.models  # the memory-off row runs the shipped MVP
-    for name in [n for n in MODEL_NAMES if n in args.models or (off and n == "mvp")]:
+    for name in checkpoints_needed(args.models):
         path = Path(weights) / f"{name}.pt"
         if not path.is_file():
             train = f"python -m completion.train --model {name} --out {path}"

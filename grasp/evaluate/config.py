@@ -158,6 +158,12 @@ PRESETS: dict[str, Preset] = {
 }
 
 
+def checkpoints_needed(rows) -> list[str]:
+    """The models whose checkpoints these rows run: the model rows, and MVP for its memory-off
+    row."""
+    return [n for n in MODEL_NAMES if n in rows or (n == "mvp" and MEMORY_OFF in rows)]
+
+
 @dataclass(frozen=True)
 class Settings:
     """Everything a run depends on (written to results.json as ``config``)."""
@@ -186,9 +192,7 @@ class Settings:
         bad = [c for c in self.conditions if c not in CONDITIONS]
         if bad:
             raise ValueError(f"conditions must be among {CONDITIONS}, got {bad}")
-        needed = [r for r in self.rows if r in MODEL_NAMES] + (["mvp"] if MEMORY_OFF in self.rows
-                                                              else [])  # fmt: skip
-        missing = [r for r in needed if r not in dict(self.model_paths)]
+        missing = [r for r in checkpoints_needed(self.rows) if r not in dict(self.model_paths)]
         if missing:
             raise ValueError(f"no checkpoint path given for model rows {missing}")
         if PRIOR in self.rows and not self.prior_path:

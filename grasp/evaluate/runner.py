@@ -31,6 +31,7 @@ from grasp.evaluate.config import (
     TRUE_MESH,
     Job,
     Settings,
+    checkpoints_needed,
 )
 
 STAGES: tuple[str, ...] = (
@@ -166,8 +167,9 @@ class Evaluator:
         self.renderer = Renderer()
         self.models = {}
         self.thresholds: dict[str, float] = {}
+        needed = checkpoints_needed(settings.rows)
         for name, path in settings.model_paths:
-            if name not in settings.rows and not (name == "mvp" and MEMORY_OFF in settings.rows):
+            if name not in needed:
                 continue
             model = load_model(path).eval()
             # the validation-chosen decision threshold: an attribute of the loaded model, or the
