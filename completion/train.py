@@ -154,29 +154,41 @@ def validate(
     return out
 
 
-def warm_start(model: CompletionModel, path: Path) -> None:
-    """Start from trained weights: a checkpoint of the same kind and shape loads whole (a new
-    run that fine-tunes it, with its own schedule; rotary values may be switched on or off, they
-    have no weights); a Single-View U-Net initialises both towers' encoders and the decoder of
-    a multi-view model. The context path's output layer then starts at zero, so the model
-    begins exactly as the Single-View model and learns what the memory adds."""
+def warm_start(model: CompletionModel, path: Path) -> list[str]:
+    """Start from trained weights; returns the names of the tensors that kept their fresh init.
+
+    A checkpoint of the same kind and shape loads whole (a new run that fine-tunes it, with its
+    own schedule; rotary values may be switched on or off, they have no weights). Otherwise
+    every tensor that both models have, by name and shape, loads: a Single-View U-Net gives a
+    multi-view model both towers' encoders and the decoder; a multi-view model gives Single-View
+    its local tower and decoder, and another multi-view kind its towers, decoder, bridge and
+    whatever of its sequence block matches (MVT takes MVP's attention weights; an LSTM none).
+    Unless the sequence block loaded whole, the context path's output layer then starts at zero,
+    so the model begins exactly as the checkpoint's model without its memory and learns what
+    its own memory adds.
+    """
     payload = read_checkpoint(path)
     weights = {k: v.float() for k, v in payload["state_dict"].items()}
     saved = ModelConfig.from_dict(payload["config"])
     same = {"seed": model.config.seed, "value_rotation": model.config.value_rotation}
     if saved.replace(**same) == model.config:
         model.load_state_dict(weights)
-        return
-    if saved.kind != "single_view":
-        raise ValueError(f"--init-from needs a single_view checkpoint or one of this model's "
-                         f"config, {path} is {saved.kind}")
-    for name in ("encoder", "decoder", "context_encoder"):
-        part = getattr(model, name)
-        if part is None:
-            continue
-        prefix = "decoder." if name == "decoder" else "encoder."
-        part.load_state_dict({k[len(prefix):]: v for k, v in weights.items()
-                              if k.startswith(prefix)})
+        return []
+    if saved.kind == "single_view" and model.context_encoder is not None:
+        # one U-Net for both towers: the context encoder starts as the local one
+        weights.update({"context_" + k: v for k, v in weights.items() if k.startswith("encoder.")})
+    own = model.state_dict()
+    taken = {k: v for k, v in weights.items() if k in own and own[k].shape == v.shape}
+    if not any(k.startswith("encoder.") for k in taken):
+        raise ValueError(f"--init-from: {path} ({saved.kind}) shares no U-Net with this model "
+                         f"({model.config.kind}): a checkpoint of the same grid and channels")
+    model.load_state_dict(taken, strict=False)
+    fresh = [k for k in own if k not in taken]
+    if any(k.startswith("tower.") for k in fresh):
+        with torch.no_grad():
+            for p in model.bridge.expand.parameters():
+                p.zero_()
+    return fresh
 
 
 def mask_views(
@@ -284,7 +296,10 @@ def _train(args: argparse.Namespace, world: World, device: torch.device) -> dict
     config = default_config(args.model, **args.config, seed=args.seed)
     model = build_model(config)
     if args.init_from:
-        warm_start(model, args.init_from)
+        fresh = warm_start(model, args.init_from)
+        if world.main and fresh:
+            print(f"--init-from {args.init_from}: {len(fresh)} tensors keep their fresh init: "
+                  f"{', '.join(fresh)}", flush=True)
     model = model.to(device)
     net = model  # what the steps call: DDP averages the gradients over the ranks
     if world.distributed:
@@ -503,7 +518,8 @@ def model_card(paths: list[Path]) -> str:
 
 
 def _overrides(text: str) -> dict:
-    """``key=value,key=value`` ModelConfig overrides; tuples as ``channels=8:16:32``."""
+    """``key=value,key=value`` ModelConfig overrides; tuples as ``channels=8:16:32``, booleans
+    as ``qk_norm=true``."""
     out: dict = {}
     for item in filter(None, text.split(",")):
         key, sep, value = item.partition("=")
@@ -511,6 +527,8 @@ def _overrides(text: str) -> dict:
             raise argparse.ArgumentTypeError(f"expected key=value, got {item!r}")
         if ":" in value:
             out[key] = tuple(int(v) for v in value.split(":"))
+        elif value.lower() in ("true", "false"):
+            out[key] = value.lower() == "true"
         else:
             try:
                 out[key] = int(value)

@@ -470,9 +470,49 @@ def test_warm_start_from_the_same_model_loads_it_whole(tmp_path):
     for (name, a), b in zip(source.state_dict().items(), rotary.state_dict().values(),
                             strict=True):
         torch.testing.assert_close(a.float(), b.float(), msg=name)
-    other = build_model(tiny_config("mvt"))
-    with pytest.raises(ValueError, match="single_view checkpoint or one of this model's"):
-        warm_start(other, tmp_path / "mvp.pt")
+
+
+@torch.no_grad()
+def test_warm_start_across_kinds_takes_every_shared_tensor(tmp_path):
+    """The recipe that trains all six from one network: a multi-view checkpoint gives
+    Single-View its local U-Net, MVT MVP's attention weights, an LSTM all but its block (whose
+    output layer then starts at zero, so it begins as the U-Net alone)."""
+    from completion.train import warm_start
+
+    source = build_model(tiny_config("mvp", seed=3))
+    for p in source.bridge.expand.parameters():
+        p.normal_()  # a trained context path: not zero
+    save_checkpoint(source, tmp_path / "mvp.pt")
+    mine = {k: v.float() for k, v in source.state_dict().items()}
+
+    single = build_model(tiny_config("single_view", seed=4))
+    assert warm_start(single, tmp_path / "mvp.pt") == []
+    for name, value in single.state_dict().items():
+        torch.testing.assert_close(value, mine[name], msg=name)
+
+    mvt = build_model(tiny_config("mvt", seed=4, qk_norm=True))
+    assert warm_start(mvt, tmp_path / "mvp.pt") == []  # MVP's random features are a buffer
+    for name, value in mvt.state_dict().items():
+        torch.testing.assert_close(value, mine[name], msg=name)
+
+    lstm = build_model(tiny_config("lstm", seed=4))
+    fresh = warm_start(lstm, tmp_path / "mvp.pt")
+    assert fresh and all(name.startswith("tower.lstm.") for name in fresh)
+    assert not lstm.bridge.expand.weight.any()  # the new block's path starts closed
+    seq = (torch.rand(1, 3, 40, 40, 40, generator=torch.Generator().manual_seed(0)) > 0.9).float()
+    torch.testing.assert_close(lstm.eval()(seq), single.eval()(seq))  # the U-Net alone
+
+    narrow = build_model(tiny_config("mvp", channels=(4, 8, 16)))
+    with pytest.raises(ValueError, match="shares no U-Net"):
+        warm_start(narrow, tmp_path / "mvp.pt")
+
+
+def test_config_overrides_parse_numbers_tuples_and_booleans():
+    from completion.train import _overrides
+
+    assert _overrides("value_rotation=30,qk_norm=true,channels=8:16:32,kernel=relu") == {
+        "value_rotation": 30, "qk_norm": True, "channels": (8, 16, 32), "kernel": "relu"}
+    assert _overrides("qk_norm=False") == {"qk_norm": False}
 
 
 @torch.no_grad()
