@@ -507,3 +507,30 @@ def test_nothing_prints_pybullet_noise(tmp_path):
         for stream in (run.stdout, run.stderr):
             assert "argv[0]=" not in stream and "pybullet build time" not in stream, command
     assert "and the figures" not in run.stdout  # --no-figures says so
+
+
+def test_grasp_figure_takes_a_rounded_pose_back_to_a_rigid_one():
+    """results.json rounds poses to 1e-6; a rounded rotation can fail the simulator's rigidity
+    check (this crashed the figures once), so the figure takes the nearest rotation."""
+    from scipy.spatial.transform import Rotation
+
+    from grasp.evaluate.figures import _grasp_result
+    from grasp.sim import check_pose
+
+    rounded = None
+    for seed in range(200):
+        pose = np.eye(4)
+        pose[:3, :3] = Rotation.random(random_state=seed).as_matrix()
+        pose[:3, 3] = (0.1, -0.2, 0.3)
+        candidate = pose.round(6)
+        try:
+            check_pose(candidate)
+        except ValueError:
+            rounded = candidate
+            break
+    assert rounded is not None, "no rotation whose rounding breaks rigidity: the test is void"
+    summary = {"success": True, "reason": "", "palm_pose": rounded.tolist(),
+               "joints_deg": [0.0] * 8, "spread_deg": 0.0}
+    fixed = _grasp_result(summary).palm_pose
+    check_pose(fixed)
+    np.testing.assert_allclose(fixed, rounded, atol=2e-6)
