@@ -318,7 +318,9 @@ class JointError:
             return {
                 "success": bool(g.success),
                 "reason": g.reason,
-                "palm_pose": plain(g.palm_pose),
+                # full precision: a rotation rounded to 1e-6 is not rigid to the simulator's
+                # check, and readers re-run grasps from this pose (grasps.png)
+                "palm_pose": np.asarray(g.palm_pose, dtype=float).tolist(),
                 "joints_deg": plain(g.joints_deg),
                 "spread_deg": float(g.dofs_deg.spread),
                 "epsilon": round(float(g.epsilon), 6),

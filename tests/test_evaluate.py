@@ -509,28 +509,29 @@ def test_nothing_prints_pybullet_noise(tmp_path):
     assert "and the figures" not in run.stdout  # --no-figures says so
 
 
-def test_grasp_figure_takes_a_rounded_pose_back_to_a_rigid_one():
-    """results.json rounds poses to 1e-6; a rounded rotation can fail the simulator's rigidity
-    check (this crashed the figures once), so the figure takes the nearest rotation."""
+def test_grasp_summary_keeps_a_pose_the_figure_can_re_run():
+    """results.json once rounded poses to 1e-6; a rounded rotation can fail the simulator's
+    rigidity check (this crashed the figures once), so the summary keeps the pose whole."""
     from scipy.spatial.transform import Rotation
 
+    from grasp.autograsp import GraspResult, HandDofs, HandJoints
     from grasp.evaluate.figures import _grasp_result
+    from grasp.metrics import JointError
     from grasp.sim import check_pose
 
-    rounded = None
+    fragile = None
     for seed in range(200):
         pose = np.eye(4)
         pose[:3, :3] = Rotation.random(random_state=seed).as_matrix()
         pose[:3, 3] = (0.1, -0.2, 0.3)
-        candidate = pose.round(6)
         try:
-            check_pose(candidate)
+            check_pose(pose.round(6))
         except ValueError:
-            rounded = candidate
+            fragile = pose
             break
-    assert rounded is not None, "no rotation whose rounding breaks rigidity: the test is void"
-    summary = {"success": True, "reason": "", "palm_pose": rounded.tolist(),
-               "joints_deg": [0.0] * 8, "spread_deg": 0.0}
+    assert fragile is not None, "no rotation whose rounding breaks rigidity: the test is void"
+    grasp = GraspResult(True, "", fragile, HandJoints(*[0.0] * 8), HandDofs(0.0, 0.0, 0.0, 0.0))
+    summary = JointError(1.0, planned=grasp).as_dict()["planned"]
     fixed = _grasp_result(summary).palm_pose
     check_pose(fixed)
-    np.testing.assert_allclose(fixed, rounded, atol=2e-6)
+    np.testing.assert_allclose(fixed, fragile, atol=2e-6)

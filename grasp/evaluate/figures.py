@@ -132,16 +132,10 @@ def _grasp_result(summary: dict):
     from grasp.autograsp import GraspResult, HandDofs, HandJoints
 
     joints = HandJoints(*summary["joints_deg"])
-    # the summary rounds the pose to 1e-6, which can leave its rotation off by more than the
-    # simulator's rigidity check allows: take the nearest rotation
-    pose = np.array(summary["palm_pose"], dtype=float)
-    u, _, vt = np.linalg.svd(pose[:3, :3])
-    pose[:3, :3] = u @ vt
-    pose[3] = (0.0, 0.0, 0.0, 1.0)
     return GraspResult(
         summary["success"],
         summary["reason"],
-        pose,
+        np.asarray(summary["palm_pose"]),
         joints,
         HandDofs(summary["spread_deg"], 0.0, 0.0, 0.0),
     )
