@@ -9,7 +9,8 @@ Conventions (DESIGN §3):
   a translation.
 - Voxel (i, j, k) covers indices [i - 0.5, i + 0.5) along each axis.
 - The Varley fit puts the centre of the observed points' bounding box at index (20, 20, 18) and
-  makes the largest bbox extent span 32 voxels.
+  makes the largest bbox extent span 32 voxels. While the camera has not moved (same pose as
+  the previous view), the box is that of every point seen from that pose (:func:`fit_seen`).
 
 Only numpy (and libigl, imported where used) lives here: torch never.
 """
@@ -125,13 +126,55 @@ def fit_grid(points: np.ndarray) -> np.ndarray:
     pts = as_points(points)
     if len(pts) == 0:
         raise ValueError("fit_grid needs at least one observed point")
-    lo, hi = pts.min(axis=0), pts.max(axis=0)
+    return _fit_bounds(pts.min(axis=0), pts.max(axis=0))
+
+
+def _fit_bounds(lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
     centre = (lo + hi) / 2.0
     pitch = max(float((hi - lo).max()) / FIT_EXTENT_VOXELS, MIN_PITCH)
     t = np.eye(4)
     t[:3, :3] *= pitch
     t[:3, 3] = centre - pitch * FIT_CENTER_INDEX
     return t
+
+
+#: Two camera poses closer than this (metres, and radians via the rotation's entries) are "the
+#: camera has not moved" for :func:`fit_seen`.
+STILL_CAMERA_TOLERANCE = 1e-6
+
+
+def camera_still(camera_to_world: np.ndarray | None, previous: np.ndarray | None) -> bool:
+    """True when both poses are known and equal within :data:`STILL_CAMERA_TOLERANCE`."""
+    if camera_to_world is None or previous is None:
+        return False
+    diff = np.asarray(camera_to_world, dtype=np.float64) - np.asarray(previous, dtype=np.float64)
+    return bool(np.abs(diff).max() <= STILL_CAMERA_TOLERANCE)
+
+
+def fit_seen(
+    points: np.ndarray, seen: np.ndarray | None = None
+) -> tuple[np.ndarray | None, np.ndarray | None]:
+    """The fit for a view from a camera that has not moved (DESIGN §3): the Varley fit over the
+    bounding box of this view's points together with ``seen``, the (2, 3) [lo, hi] bounds of
+    every point seen earlier from the same pose (None for a new pose: the plain per-view fit).
+
+    Returns ``(grid_to_camera, bounds)``; both None when there are no points now and none seen
+    (the caller carries the previous grid). With a still camera the grid never shrinks around
+    what is visible now, so an object that moves behind another stays inside it.
+    """
+    pts = as_points(points)
+    bounds = np.stack([pts.min(axis=0), pts.max(axis=0)]) if len(pts) else None
+    if seen is not None:
+        seen = np.asarray(seen, dtype=np.float64)
+        if seen.shape != (2, 3) or not np.isfinite(seen).all():
+            raise ValueError(f"seen bounds must be a finite (2, 3) [lo, hi], got {seen.shape}")
+        if bounds is None:
+            bounds = seen
+        else:
+            bounds = np.stack([np.minimum(seen[0], bounds[0]), np.maximum(seen[1], bounds[1])])
+    if bounds is None:
+        return None, None
+    return _fit_bounds(bounds[0], bounds[1]), bounds
 
 
 def voxel_centers(grid_to_camera: np.ndarray) -> np.ndarray:

@@ -259,7 +259,7 @@ def _observe(
     targets = np.zeros_like(inputs)
     transforms = np.zeros((views, 4, 4))
     depths, masks, visible, curtains = [], [], [], []
-    previous = previous_camera = None
+    previous = previous_camera = seen = None
     for t, (camera, poses) in enumerate(zip(cameras, object_poses, strict=True)):
         for i, pose in enumerate(poses):
             r.set_pose(i, pose)
@@ -269,8 +269,10 @@ def _observe(
         points = grid.depth_to_points(depth, r.intrinsics, mask >= 0)
         labels = mask[(mask >= 0) & (depth > 0)]
         visible.append([int((labels == i).sum()) for i in range(len(meshes))])
-        if len(points):
-            previous = grid.fit_grid(points)
+        still = grid.camera_still(camera, previous_camera)
+        fitted, seen = grid.fit_seen(points, seen if still else None)
+        if fitted is not None:
+            previous = fitted
         elif previous is None:  # nothing seen yet: frame the objects where they are
             previous = grid.fit_grid(_camera_vertices(meshes, poses, camera))
         else:  # nothing seen now: the previous grid, where it was in the world

@@ -2,8 +2,10 @@
 
 Each view, given as a depth image + intrinsics (+ mask), a camera-frame point cloud or a ready
 grid, is voxelized in its own grid exactly as training did (DESIGN §3: the Varley fit on the
-view's points; a view with no object points keeps the previous view's grid, re-expressed in the
-new camera frame when both views came with camera poses: :func:`completion.grid.carry_grid`),
+view's points, or, while the camera has not moved (a view with the same camera pose as the one
+before), on every point seen from that pose: :func:`completion.grid.fit_seen`; a view with no
+object points keeps the previous view's grid, re-expressed in the new camera frame when both
+views came with camera poses: :func:`completion.grid.carry_grid`),
 the model takes one streaming step, and the completion is the model's output for the latest
 view: occupancy probabilities (40, 40, 40) with the grid's ``grid_to_camera`` (the latest view's
 camera frame). A stream counts as having seen the object only after a view with at least one
@@ -66,6 +68,7 @@ class CompletionStream:
         self.seen = False  # a view with at least one observed voxel has come
         self.grid_to_camera: np.ndarray | None = None
         self.camera_to_world: np.ndarray | None = None
+        self._seen: np.ndarray | None = None  # (2, 3) bounds of the points seen from this pose
         self._state = model.init_state(1)
         self._logits: np.ndarray | None = None
         self._observed: np.ndarray | None = None  # the latest view's input grid (bool)
@@ -93,11 +96,12 @@ class CompletionStream:
             camera_to_world = np.asarray(camera_to_world, dtype=np.float64)
             if camera_to_world.shape != (4, 4) or not np.isfinite(camera_to_world).all():
                 raise ValueError("camera_to_world must be a finite 4×4 matrix")
+        seen = None
         if grid is None:
             pts = G.as_points(points)
-            if len(pts):
-                transform = G.fit_grid(pts)
-            else:
+            still = G.camera_still(camera_to_world, self.camera_to_world)
+            transform, seen = G.fit_seen(pts, self._seen if still else None)
+            if transform is None:
                 transform = self._carried_grid(camera_to_world)
             occ = (
                 G.voxelize_points(pts, transform)
@@ -106,7 +110,9 @@ class CompletionStream:
             )
         else:
             transform, occ = grid.grid_to_camera, grid.occupancy
-        return self._step(occ, transform, camera_to_world)
+        result = self._step(occ, transform, camera_to_world)
+        self._seen = seen
+        return result
 
     def _carried_grid(self, camera_to_world: np.ndarray | None) -> np.ndarray | None:
         """The grid of a view without object points: the previous one, moved into the new
@@ -165,6 +171,8 @@ class CompletionStream:
             arrays["camera_to_world"] = self.camera_to_world
         if self._logits is not None:
             arrays["logits"] = self._logits
+        if self._seen is not None:
+            arrays["seen_bounds"] = self._seen
         if self._observed is not None:
             arrays["observed"] = np.packbits(self._observed.reshape(-1))
         np.savez(buf, **arrays)
@@ -181,6 +189,7 @@ class CompletionStream:
             stream.grid_to_camera = z["grid_to_camera"] if "grid_to_camera" in z else None
             stream.camera_to_world = z["camera_to_world"] if "camera_to_world" in z else None
             stream._logits = z["logits"] if "logits" in z else None
+            stream._seen = z["seen_bounds"] if "seen_bounds" in z else None
             if "observed" in z:
                 stream._observed = G.VoxelGrid.unpack(z["observed"].tobytes())
             # states stored before "seen" existed: seen once a grid was fitted

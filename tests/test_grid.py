@@ -110,3 +110,22 @@ def test_voxel_grid_pack_round_trip():
     assert np.array_equal(G.VoxelGrid.unpack(G.VoxelGrid(occ, np.eye(4)).pack()), occ)
     with pytest.raises(ValueError, match="8000 bytes"):
         G.VoxelGrid.unpack(b"123")
+
+
+def test_fit_seen_frames_every_point_seen_from_a_still_camera():
+    rng = np.random.default_rng(0)
+    left = rng.normal(scale=0.02, size=(100, 3)) + [-0.1, 0.0, 0.5]
+    right = rng.normal(scale=0.02, size=(100, 3)) + [0.1, 0.0, 0.6]
+    t, seen = G.fit_seen(left)  # a new pose: the plain per-view fit
+    np.testing.assert_array_equal(t, G.fit_grid(left))
+    t, seen = G.fit_seen(right, seen)  # the same pose again: the box of both
+    np.testing.assert_array_equal(t, G.fit_grid(np.concatenate([left, right])))
+    assert G.in_grid(G.points_to_indices(left, t)).all()
+    t_empty, kept = G.fit_seen(np.zeros((0, 3)), seen)  # nothing visible now: the same grid
+    np.testing.assert_array_equal(t_empty, t)
+    np.testing.assert_array_equal(kept, seen)
+    assert G.fit_seen(np.zeros((0, 3))) == (None, None)
+    with pytest.raises(ValueError, match=r"\(2, 3\)"):
+        G.fit_seen(left, np.zeros(3))
+    assert G.camera_still(np.eye(4), np.eye(4) + 1e-9)
+    assert not G.camera_still(np.eye(4), None) and not G.camera_still(np.eye(4), 2 * np.eye(4))

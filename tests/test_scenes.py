@@ -56,6 +56,21 @@ def test_slide_behind_hides_the_sliding_object(samples):
         assert front.min() == front.max() > 0  # fixed camera, stationary front object
 
 
+def test_slide_behind_keeps_what_the_still_camera_saw_inside_the_grid(samples):
+    from completion import grid as G
+
+    for s in samples["slide_behind"]:
+        for t in range(len(s.inputs)):
+            for earlier in range(t + 1):  # every voxel seen so far lies inside view t's grid
+                seen = G.VoxelGrid(s.inputs[earlier], s.grid_to_camera[earlier]).points()
+                assert G.in_grid(G.points_to_indices(seen, s.grid_to_camera[t])).all()
+        # so the sliding object, hidden in the middle views, is still in their targets: the
+        # target never loses more than what a coarser grid costs
+        pitch = np.array([G.pitch_of(g) for g in s.grid_to_camera])
+        volume = s.targets.reshape(len(s.targets), -1).sum(1) * pitch**3
+        assert volume.min() > 0.8 * volume.max()
+
+
 def test_two_object_pan_has_two_components(samples):
     for s in samples["two_object_pan"]:
         _, n = ndimage.label(s.targets[0])

@@ -3,6 +3,7 @@
 import numpy as np
 import pytest
 
+from completion import grid as G
 from completion.grid import GRID_SHAPE, VoxelGrid
 from completion.model import ModelConfig, build_model
 from completion.stream import CompletionStream, NoObjectError
@@ -39,3 +40,33 @@ def test_nothing_is_seen_until_a_view_has_an_observed_voxel():
     assert not restored.seen
     stream.add_view(points=np.random.default_rng(1).normal(scale=0.02, size=(50, 3)) + [0, 0, 0.5])
     assert stream.seen and stream.completion().views == 2
+
+
+def test_a_still_camera_frames_every_point_it_saw_as_the_training_data_does():
+    from completion.scenes import make_sequence
+
+    seq = make_sequence("slide_behind", "test", 0, seed=0, keep_depth=True)
+    intrinsics = G.Intrinsics(**{k: seq.meta["intrinsics"][k] for k in _INTRINSICS})
+    model = build_model(ModelConfig(kind="single_view", channels=(2, 2, 2)))
+    stream = CompletionStream(model)
+    for t in range(len(seq.inputs)):
+        if t == 6:  # a stored and restored session goes on exactly
+            stream = CompletionStream.from_bytes(model, stream.to_bytes())
+        result = stream.add_view(
+            depth=seq.depth[t],
+            intrinsics=intrinsics,
+            mask=seq.mask[t] >= 0,
+            camera_to_world=seq.camera_to_world[t],
+        )
+        np.testing.assert_allclose(stream.grid_to_camera, seq.grid_to_camera[t], atol=1e-12)
+        assert result.observed_voxels == seq.inputs[t].sum()
+    # without poses the stream cannot know the camera stood still: each view is fitted alone
+    alone = CompletionStream(model)
+    alone.add_view(depth=seq.depth[0], intrinsics=intrinsics, mask=seq.mask[0] >= 0)
+    alone.add_view(depth=seq.depth[-1], intrinsics=intrinsics, mask=seq.mask[-1] >= 0)
+    points = G.depth_to_points(seq.depth[-1], intrinsics, seq.mask[-1] >= 0)
+    np.testing.assert_array_equal(alone.grid_to_camera, G.fit_grid(points))
+    assert not np.allclose(alone.grid_to_camera, seq.grid_to_camera[-1])
+
+
+_INTRINSICS = ("fx", "fy", "cx", "cy", "width", "height")
