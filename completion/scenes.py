@@ -3,8 +3,9 @@
 ``make_sequence(condition, split, index, seed)`` is deterministic in its arguments: it draws
 the objects, their poses and the camera path from one generator seeded by
 (seed, condition, split, index), renders each view, fits that view's grid to the observed points
-(:func:`completion.grid.fit_grid`) and voxelizes the observed points (input) and the complete
-objects (target, solid) in it.
+(:func:`completion.grid.fit_seen`: to this view's points, or, while the camera has not moved, to
+every point seen from it) and voxelizes the observed points (input) and the complete objects
+(target, solid) in it.
 
 - camera_pan: one object at the origin in a random orientation; the camera circles it at a random
   radius (0.45–0.75 m) and elevation (15–60°), 30° of azimuth per view.
@@ -16,8 +17,11 @@ objects (target, solid) in it.
   grid is fitted to the uncovered observation: the curtain is a synthetic occluder in voxel
   space, as in the paper.
 - object_reveal: the reverse sweep (p_t = round((11 − t)·40/11)): hidden at first, then revealed.
-- slide_behind: a fixed camera looks at a stationary object; a second, no larger object slides
-  across behind it (random depth gap and start offset), hidden in the middle views.
+- slide_behind: a fixed camera looks at a stationary object; a second, smaller object (0.5–0.9 of
+  its diagonal) starts beside it, 2–10 cm deeper, and slides behind it, arriving at view 3–6
+  (random) and staying there, partly or fully hidden for the rest of the sequence (the paper:
+  "partially or fully occluded for several views"). The camera stands still, so every view's
+  grid frames all the points seen so far and the hidden object stays in grid and target.
 """
 
 from __future__ import annotations
@@ -159,8 +163,9 @@ def _slide(rng: np.random.Generator, a: trimesh.Trimesh, b: trimesh.Trimesh, vie
     span = (radius_a + radius_b) * rng.uniform(1.3, 1.8)
     start = rng.choice([-1.0, 1.0]) * span
     offset = rng.uniform(-0.1, 0.1) * radius_a
+    arrive = int(rng.integers(3, 7))  # the view from which it stays behind the front object
     poses = []
-    for x in np.linspace(start, -start, views):
+    for x in start * np.clip(1.0 - np.arange(views) / arrive, 0.0, None):
         pb = rb.copy()
         pb[:3, 3] = forward * depth_gap + side * (x + offset)
         poses.append([ra, pb])

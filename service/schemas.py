@@ -69,7 +69,11 @@ class ViewIn(_Strict):
         "non-zero = object pixel (absent: every valid pixel is the object)",
     )
     grid: GridIn | None = None
-    camera_pose: Matrix4 | None = Field(None, description="camera→world, rigid")
+    camera_pose: Matrix4 | None = Field(
+        None,
+        description="camera→world, rigid; while it stays the same from view to view, the grid "
+        "is fitted to every point seen from that pose (a fixed camera watching objects move)",
+    )
 
     @model_validator(mode="after")
     def _one_input(self) -> ViewIn:
