@@ -18,10 +18,11 @@ every point seen from it) and voxelizes the observed points (input) and the comp
   space, as in the paper.
 - object_reveal: the reverse sweep (p_t = round((11 − t)·40/11)): hidden at first, then revealed.
 - slide_behind: a fixed camera looks at a stationary object; a second, smaller object (0.5–0.9 of
-  its diagonal) starts beside it, 2–10 cm deeper, and slides behind it, arriving at view 3–6
-  (random) and staying there, partly or fully hidden for the rest of the sequence (the paper:
-  "partially or fully occluded for several views"). The camera stands still, so every view's
-  grid frames all the points seen so far and the hidden object stays in grid and target.
+  its diagonal), 2–10 cm further back (bounding spheres apart), starts beside it and slides
+  behind it, arriving at view 3–6 (random) and staying there, partly or fully hidden for the rest
+  of the sequence (the paper: "partially or fully occluded for several views"). The camera
+  stands still, so every view's grid frames all the points seen so far and the hidden object
+  stays in grid and target.
 """
 
 from __future__ import annotations
