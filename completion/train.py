@@ -74,12 +74,14 @@ def load_split(folder: Path, conditions: list[str], split: str) -> dict:
     ``packed``: uint8 (N, 2, L, 40, 40, 5), inputs then targets with the last axis packed 8 voxels
     to a byte (a 4,000-sequence set takes 0.8 GB instead of 6 GB); ``condition``: one name per
     sequence. The packed array is cached beside the shards (``.packed-*.npz``) so the next run
-    starts in seconds; the cache is keyed by the shard names it holds.
+    starts in seconds; the cache is keyed by the name, size and modification time of every shard
+    it holds, so regenerated shards are read again rather than taken from a stale cache.
     """
     paths = sorted(p for c in conditions for p in folder.glob(f"{c}_{split}_*.npz"))
     if not paths:
         raise ValueError(f"no {split} shards for {conditions} in {folder}")
-    key = hashlib.sha1("\n".join(p.name for p in paths).encode()).hexdigest()[:12]
+    stamps = (f"{p.name} {p.stat().st_size} {p.stat().st_mtime_ns}" for p in paths)
+    key = hashlib.sha1("\n".join(stamps).encode()).hexdigest()[:12]
     cache = folder / f".packed-{split}-{key}.npz"
     if cache.is_file():
         with np.load(cache, allow_pickle=False) as z:

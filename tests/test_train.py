@@ -285,3 +285,22 @@ def test_augment_mirrors_or_rolls_whole_sequences_and_never_flips_z():
         assert got == kinds(b) and set(got) == allowed, (mode, set(got))
     with pytest.raises(ValueError, match="augmentation must be one of"):
         augment(x, x, torch.Generator(), "rotate")
+
+
+def test_a_regenerated_shard_is_read_again_not_taken_from_the_packed_cache(shards, tmp_path):
+    import shutil
+
+    import numpy as np
+
+    from completion.train import load_split
+
+    folder = tmp_path / "train"
+    shutil.copytree(shards / "train", folder)
+    first = load_split(folder, ["camera_pan"], "train")
+    path = sorted(folder.glob("camera_pan_*.npz"))[0]
+    seq = data.load_sequence(path)
+    seq.targets[:] = ~seq.targets  # the same name, new content (as a changed scene would write)
+    data.save_sequence(seq, path)
+    again = load_split(folder, ["camera_pan"], "train")
+    assert not np.array_equal(first["packed"][0, 1], again["packed"][0, 1])
+    np.testing.assert_array_equal(again["packed"][1], first["packed"][1])
