@@ -253,7 +253,8 @@ def how_to_read(results: dict) -> list[str]:
         "## How to read this",
         "",
         "- **Protocol (as in the paper).** Five conditions of 12 views; every grid is 40³ and "
-        "fitted to the current view's observed points, in that view's camera frame. Jaccard and "
+        "fitted to the current view's observed points (slide behind's still camera: to every "
+        "point seen so far), in that view's camera frame. Jaccard and "
         "F-score are means over the views of a sequence, then over sequences; the joint error is "
         "on the final view of the single-object conditions: plan on the prediction, re-grasp the "
         "prediction and the true object from the same pre-grasp pose, compare the joints.",
