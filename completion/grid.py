@@ -177,6 +177,33 @@ def fit_seen(
     return _fit_bounds(bounds[0], bounds[1]), bounds
 
 
+def view_grid(
+    points: np.ndarray,
+    camera_to_world: np.ndarray | None = None,
+    previous_grid: np.ndarray | None = None,
+    previous_camera: np.ndarray | None = None,
+    seen: np.ndarray | None = None,
+) -> tuple[np.ndarray | None, np.ndarray | None]:
+    """The grid of a new view (DESIGN §3), one rule for the training data and the service.
+
+    points : (n, 3) this view's observed object points; camera_to_world : its pose, if known;
+    previous_grid, previous_camera, seen : the previous view's grid, pose and the bounds this
+    function returned with it. While the camera stands still the grid frames every point seen
+    from it (:func:`fit_seen`); a view with no points (and none seen from here) keeps the previous
+    grid, where it was in the world when both poses are known (:func:`carry_grid`).
+
+    Returns ``(grid_to_camera, seen)`` to pass with the next view; the grid is None only before
+    any view had points.
+    """
+    still = camera_still(camera_to_world, previous_camera)
+    fitted, seen = fit_seen(points, seen if still else None)
+    if fitted is not None or previous_grid is None:
+        return fitted, seen
+    if camera_to_world is None or previous_camera is None:
+        return previous_grid, None
+    return carry_grid(previous_grid, previous_camera, camera_to_world), None
+
+
 def voxel_centers(grid_to_camera: np.ndarray) -> np.ndarray:
     """(40³, 3) camera-frame centres of every voxel, in C order of the (i, j, k) array."""
     idx = np.stack(np.meshgrid(*(np.arange(GRID_SIZE),) * 3, indexing="ij"), axis=-1)

@@ -3,7 +3,7 @@
 ``make_sequence(condition, split, index, seed)`` is deterministic in its arguments: it draws
 the objects, their poses and the camera path from one generator seeded by
 (seed, condition, split, index), renders each view, fits that view's grid to the observed points
-(:func:`completion.grid.fit_seen`: to this view's points, or, while the camera has not moved, to
+(:func:`completion.grid.view_grid`: to this view's points, or, while the camera has not moved, to
 every point seen from it) and voxelizes the observed points (input) and the complete objects
 (target, solid) in it.
 
@@ -275,14 +275,9 @@ def _observe(
         points = grid.depth_to_points(depth, r.intrinsics, mask >= 0)
         labels = mask[(mask >= 0) & (depth > 0)]
         visible.append([int((labels == i).sum()) for i in range(len(meshes))])
-        still = grid.camera_still(camera, previous_camera)
-        fitted, seen = grid.fit_seen(points, seen if still else None)
-        if fitted is not None:
-            previous = fitted
-        elif previous is None:  # nothing seen yet: frame the objects where they are
+        previous, seen = grid.view_grid(points, camera, previous, previous_camera, seen)
+        if previous is None:  # nothing seen yet: frame the objects where they are
             previous = grid.fit_grid(_camera_vertices(meshes, poses, camera))
-        else:  # nothing seen now: the previous grid, where it was in the world
-            previous = grid.carry_grid(previous, previous_camera, camera)
         previous_camera = camera
         transforms[t] = previous
         occ = grid.voxelize_points(points, previous)

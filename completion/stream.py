@@ -3,9 +3,9 @@
 Each view, given as a depth image + intrinsics (+ mask), a camera-frame point cloud or a ready
 grid, is voxelized in its own grid exactly as training did (DESIGN §3: the Varley fit on the
 view's points, or, while the camera has not moved (a view with the same camera pose as the one
-before), on every point seen from that pose: :func:`completion.grid.fit_seen`; a view with no
-object points keeps the previous view's grid, re-expressed in the new camera frame when both
-views came with camera poses: :func:`completion.grid.carry_grid`),
+before), on every point seen from that pose; a view with no object points keeps the previous
+view's grid, re-expressed in the new camera frame when both views came with camera poses: one
+rule with the training data, :func:`completion.grid.view_grid`),
 the model takes one streaming step, and the completion is the model's output for the latest
 view: occupancy probabilities (40, 40, 40) with the grid's ``grid_to_camera`` (the latest view's
 camera frame). A stream counts as having seen the object only after a view with at least one
@@ -68,7 +68,7 @@ class CompletionStream:
         self.seen = False  # a view with at least one observed voxel has come
         self.grid_to_camera: np.ndarray | None = None
         self.camera_to_world: np.ndarray | None = None
-        self._seen: np.ndarray | None = None  # (2, 3) bounds of the points seen from this pose
+        self._seen_bounds: np.ndarray | None = None  # of the points seen from this pose
         self._state = model.init_state(1)
         self._logits: np.ndarray | None = None
         self._observed: np.ndarray | None = None  # the latest view's input grid (bool)
@@ -96,13 +96,12 @@ class CompletionStream:
             camera_to_world = np.asarray(camera_to_world, dtype=np.float64)
             if camera_to_world.shape != (4, 4) or not np.isfinite(camera_to_world).all():
                 raise ValueError("camera_to_world must be a finite 4×4 matrix")
-        seen = None
+        bounds = None
         if grid is None:
             pts = G.as_points(points)
-            still = G.camera_still(camera_to_world, self.camera_to_world)
-            transform, seen = G.fit_seen(pts, self._seen if still else None)
-            if transform is None:
-                transform = self._carried_grid(camera_to_world)
+            transform, bounds = G.view_grid(
+                pts, camera_to_world, self.grid_to_camera, self.camera_to_world, self._seen_bounds
+            )
             occ = (
                 G.voxelize_points(pts, transform)
                 if transform is not None
@@ -111,17 +110,8 @@ class CompletionStream:
         else:
             transform, occ = grid.grid_to_camera, grid.occupancy
         result = self._step(occ, transform, camera_to_world)
-        self._seen = seen
+        self._seen_bounds = bounds
         return result
-
-    def _carried_grid(self, camera_to_world: np.ndarray | None) -> np.ndarray | None:
-        """The grid of a view without object points: the previous one, moved into the new
-        camera frame when both poses are known (else left as it was)."""
-        if self.grid_to_camera is None:
-            return None
-        if camera_to_world is None or self.camera_to_world is None:
-            return self.grid_to_camera
-        return G.carry_grid(self.grid_to_camera, self.camera_to_world, camera_to_world)
 
     def _step(self, occ: np.ndarray, transform, camera_to_world) -> ViewResult:
         frame = torch.from_numpy(np.ascontiguousarray(occ, dtype=np.float32))[None]
@@ -171,8 +161,8 @@ class CompletionStream:
             arrays["camera_to_world"] = self.camera_to_world
         if self._logits is not None:
             arrays["logits"] = self._logits
-        if self._seen is not None:
-            arrays["seen_bounds"] = self._seen
+        if self._seen_bounds is not None:
+            arrays["seen_bounds"] = self._seen_bounds
         if self._observed is not None:
             arrays["observed"] = np.packbits(self._observed.reshape(-1))
         np.savez(buf, **arrays)
@@ -189,7 +179,7 @@ class CompletionStream:
             stream.grid_to_camera = z["grid_to_camera"] if "grid_to_camera" in z else None
             stream.camera_to_world = z["camera_to_world"] if "camera_to_world" in z else None
             stream._logits = z["logits"] if "logits" in z else None
-            stream._seen = z["seen_bounds"] if "seen_bounds" in z else None
+            stream._seen_bounds = z["seen_bounds"] if "seen_bounds" in z else None
             if "observed" in z:
                 stream._observed = G.VoxelGrid.unpack(z["observed"].tobytes())
             # states stored before "seen" existed: seen once a grid was fitted
