@@ -106,6 +106,17 @@ def unpack(packed: np.ndarray) -> tuple[torch.Tensor, torch.Tensor]:
     return grids[:, 0], grids[:, 1]
 
 
+def draw_batch(draw: torch.Tensor | None, n: int, size: int, gen: torch.Generator) -> np.ndarray:
+    """``size`` sequence indices in [0, n), sorted, drawn with replacement: uniformly when
+    ``draw`` is None (exactly the draws of the runs before ``--condition-weight``), else in
+    proportion to ``draw`` (one weight per sequence)."""
+    if draw is None:
+        pick = torch.randint(0, n, (size,), generator=gen)
+    else:
+        pick = torch.multinomial(draw, size, replacement=True, generator=gen)
+    return pick.sort().values.numpy()
+
+
 def augment(x: torch.Tensor, y: torch.Tensor, gen: torch.Generator, mode: str = "mirror"):
     """Random symmetries of the camera frame, per sequence, all views alike; never a flip of z,
     the viewing direction, which decides what is seen and what is hidden.
@@ -286,6 +297,11 @@ def _train(args: argparse.Namespace, world: World, device: torch.device) -> dict
     # each rank draws from its own part of the training sequences (all of them on one process)
     part = np.arange(world.rank, n_all, world.size)
     n_train = len(part)
+    # how often each of the rank's sequences is drawn: by its condition's --condition-weight
+    draw = None
+    if args.condition_weight:
+        draw = torch.tensor([args.condition_weight.get(train_set["condition"][i], 1.0)
+                             for i in part])  # fmt: skip
     if args.views > full_views:
         raise ValueError(f"--views {args.views} exceeds the {full_views} views in the shards")
     if args.batch_size > n_train:
@@ -371,7 +387,7 @@ def _train(args: argparse.Namespace, world: World, device: torch.device) -> dict
         if wall() - elapsed_before > budget_s:
             print(f"stopping at step {step}: --minutes {args.minutes} reached", flush=True)
             break
-        pick = torch.randint(0, n_train, (args.batch_size,), generator=gen).sort().values.numpy()
+        pick = draw_batch(draw, n_train, args.batch_size, gen)
         idx = part[pick]
         first = int(torch.randint(0, full_views - args.views + 1, (1,), generator=gen))
         x, y = unpack(train_set["packed"][idx, :, first : first + args.views])
@@ -542,6 +558,28 @@ def _overrides(text: str) -> dict:
     return out
 
 
+def _condition_weights(text: str) -> dict[str, float]:
+    """``condition=weight,...``: how much more often a condition's sequences are drawn
+    (a finite weight > 0; the conditions not named weigh 1)."""
+    out: dict[str, float] = {}
+    for item in filter(None, text.split(",")):
+        name, sep, value = item.partition("=")
+        name = name.strip().lower()
+        if not sep or name not in CONDITIONS:
+            raise argparse.ArgumentTypeError(
+                f"expected condition=weight with a condition of {', '.join(CONDITIONS)}, "
+                f"got {item!r}")
+        try:
+            weight = float(value)
+        except ValueError:
+            weight = float("nan")
+        if not (math.isfinite(weight) and weight > 0):
+            raise argparse.ArgumentTypeError(f"{name}: weight must be a finite number > 0, "
+                                             f"got {value!r}")
+        out[name] = weight
+    return out
+
+
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
     if argv[:1] == ["select-threshold"]:
@@ -571,6 +609,10 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--model", type=one_name(tuple(sorted(DEFAULT_CONFIGS)), "models"),
                    required=True, help=f"one of {', '.join(sorted(DEFAULT_CONFIGS))}")
     p.add_argument("--conditions", type=parse_conditions, default=list(CONDITIONS))
+    p.add_argument("--condition-weight", type=_condition_weights, default={},
+                   metavar="NAME=W,...",
+                   help="draw the named conditions' sequences W times as often as the others, "
+                   "e.g. slide_behind=3 (default: every sequence alike)")
     p.add_argument("--views", type=int, default=12, help="views per training window (3, 6, 12)")
     p.add_argument("--train-dir", type=Path, default=Path("data/train"))
     p.add_argument("--val-dir", type=Path, default=Path("data/val"))
@@ -656,6 +698,8 @@ def main(argv: list[str] | None = None) -> int:
         p.error(f"--jaccard-weight must be a finite number ≥ 0, got {args.jaccard_weight}")
     if not 0.0 <= args.ema < 1.0:
         p.error(f"--ema must be in [0, 1), got {args.ema}")
+    if unknown := set(args.condition_weight) - set(args.conditions):
+        p.error(f"--condition-weight names {', '.join(sorted(unknown))}, not among --conditions")
     if args.init_from and not args.init_from.is_file():
         p.error(f"--init-from: no such checkpoint {args.init_from}")
     args.command = "python -m completion.train " + shlex.join(argv)

@@ -304,3 +304,32 @@ def test_a_regenerated_shard_is_read_again_not_taken_from_the_packed_cache(shard
     again = load_split(folder, ["camera_pan"], "train")
     assert not np.array_equal(first["packed"][0, 1], again["packed"][0, 1])
     np.testing.assert_array_equal(again["packed"][1], first["packed"][1])
+
+
+def test_condition_weight_draws_a_condition_more_often_and_rejects_bad_values(
+        shards, tmp_path, capsys):
+    import torch
+
+    from completion.train import draw_batch
+
+    gen = torch.Generator().manual_seed(0)
+    uniform = draw_batch(None, 4, 6000, gen)
+    assert abs((uniform >= 2).mean() - 0.5) < 0.03
+    weighted = draw_batch(torch.tensor([1.0, 1.0, 3.0, 3.0]), 4, 6000, gen)
+    assert abs((weighted >= 2).mean() - 0.75) < 0.03  # 6 of the 8 weight units
+    assert list(weighted) == sorted(weighted)
+    args = ["--model", "mvp", "--views", "2", "--train-dir", str(shards / "train"),
+            "--val-dir", str(shards / "val"), "--train-count", "0", "--val-count", "0",
+            "--steps", "2", "--val-every", "2", "--config", TINY,
+            "--condition-weight", "object_hiding=3", "--out", str(tmp_path / "w.pt"), "--quiet"]
+    assert main(args) == 0
+    assert "--condition-weight object_hiding=3" in read_checkpoint(tmp_path / "w.pt")["command"]
+    capsys.readouterr()
+    for bad, says in ((["--condition-weight", "hiding=3"], "expected condition=weight"),
+                      (["--condition-weight", "slide_behind=0"], "finite number > 0"),
+                      (["--condition-weight", "slide_behind=x"], "finite number > 0"),
+                      (["--conditions", "camera_pan", "--condition-weight", "slide_behind=2"],
+                       "not among --conditions")):
+        with pytest.raises(SystemExit):
+            main(["--model", "mvp", *bad, "--out", "x.pt"])
+        assert says in capsys.readouterr().err
