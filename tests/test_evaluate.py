@@ -535,3 +535,16 @@ def test_grasp_summary_keeps_a_pose_the_figure_can_re_run():
     fixed = _grasp_result(summary).palm_pose
     check_pose(fixed)
     np.testing.assert_allclose(fixed, fragile, atol=2e-6)
+
+
+def test_timings_header_names_the_workers_in_plain_english():
+    from grasp.evaluate.report import markdown_timings
+
+    stages = {"generation": 1.0, "inference": 2.0}
+    timings = {"stages_wall_summed_over_sequences": stages,
+               "stages_cpu_summed_over_sequences": stages,
+               "wall": {"sequences": 3.0, "figures": 0.5, "total": 3.5}}
+    for workers, ray, header in ((2, False, "2 worker processes"), (1, False, "1 worker process)"),
+                                 (3, True, "3 Ray actors")):
+        text = markdown_timings({"timings_s": timings, "config": {"workers": workers, "ray": ray}})
+        assert header in text.splitlines()[0]

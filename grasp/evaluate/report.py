@@ -131,8 +131,9 @@ def markdown_timings(results: dict) -> str:
     wall, cpu = t["stages_wall_summed_over_sequences"], t["stages_cpu_summed_over_sequences"]
     workers = results["config"]["workers"]
     kind = "Ray actor" if results["config"].get("ray") else "worker process"
+    kinds = kind + ("es" if kind.endswith("s") else "s") if workers > 1 else kind
     lines = [
-        f"## Timings (seconds; {workers} {kind}{'s' if workers > 1 else ''})",
+        f"## Timings (seconds; {workers} {kinds})",
         "",
         "| stage | wall, summed over sequences | CPU, summed over sequences |",
         "|---|---|---|",
