@@ -561,11 +561,15 @@ def _overrides(text: str) -> dict:
 def _condition_weights(text: str) -> dict[str, float]:
     """``condition=weight,...``: how much more often a condition's sequences are drawn
     (a finite weight > 0; the conditions not named weigh 1)."""
+    condition = one_name(CONDITIONS, "conditions")  # the spellings --conditions accepts
     out: dict[str, float] = {}
     for item in filter(None, text.split(",")):
         name, sep, value = item.partition("=")
-        name = name.strip().lower()
-        if not sep or name not in CONDITIONS:
+        try:
+            name = condition(name) if sep else ""
+        except argparse.ArgumentTypeError:
+            name = ""
+        if not name:
             raise argparse.ArgumentTypeError(
                 f"expected condition=weight with a condition of {', '.join(CONDITIONS)}, "
                 f"got {item!r}")

@@ -321,9 +321,9 @@ def test_condition_weight_draws_a_condition_more_often_and_rejects_bad_values(
     args = ["--model", "mvp", "--views", "2", "--train-dir", str(shards / "train"),
             "--val-dir", str(shards / "val"), "--train-count", "0", "--val-count", "0",
             "--steps", "2", "--val-every", "2", "--config", TINY,
-            "--condition-weight", "object_hiding=3", "--out", str(tmp_path / "w.pt"), "--quiet"]
-    assert main(args) == 0
-    assert "--condition-weight object_hiding=3" in read_checkpoint(tmp_path / "w.pt")["command"]
+            "--condition-weight", "Object Hiding=3", "--out", str(tmp_path / "w.pt"), "--quiet"]
+    assert main(args) == 0  # the tables' spelling, as --conditions takes it
+    assert "--condition-weight 'Object Hiding=3'" in read_checkpoint(tmp_path / "w.pt")["command"]
     capsys.readouterr()
     for bad, says in ((["--condition-weight", "hiding=3"], "expected condition=weight"),
                       (["--condition-weight", "slide_behind=0"], "finite number > 0"),

@@ -130,10 +130,10 @@ def markdown_timings(results: dict) -> str:
     t = results["timings_s"]
     wall, cpu = t["stages_wall_summed_over_sequences"], t["stages_cpu_summed_over_sequences"]
     workers = results["config"]["workers"]
-    kind = "Ray actor" if results["config"].get("ray") else "worker process"
-    kinds = kind + ("es" if kind.endswith("s") else "s") if workers > 1 else kind
+    one, many = ("Ray actor", "Ray actors") if results["config"].get("ray") else (
+        "worker process", "worker processes")
     lines = [
-        f"## Timings (seconds; {workers} {kinds})",
+        f"## Timings (seconds; {workers} {many if workers > 1 else one})",
         "",
         "| stage | wall, summed over sequences | CPU, summed over sequences |",
         "|---|---|---|",
