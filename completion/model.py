@@ -8,6 +8,7 @@ Axis letters used in shape comments and docstrings:
     H  attention heads                   E  head size (D / H)
     M  random features (FAVOR+) or E (ReLU kernel)
     T  views held in an MVT key/value cache (grows with the stream)
+    P  tokens per view: 1, or g³ places of the bottleneck with ``context="place"``
 
 Every model maps a causal sequence of input occupancy grids to per-view occupancy logits, each in
 the grid of its own input view (so the latest output is in the latest camera frame), in two forms
@@ -24,7 +25,9 @@ The four kinds share one 3-D U-Net: :class:`Encoder` (the local tower: G³ -> fe
 G/2, G/4, G/8) and :class:`Decoder` (bottleneck + the local tower's skips + the raw input -> G³
 logits), so the surface the camera saw reaches the output directly. Except for ``single_view``
 they have the paper's two towers: a context encoder (same shape, its own weights) turns each
-frame's bottleneck volume into one token (:class:`Bridge`), a causal sequence model (Performer,
+frame's bottleneck volume into tokens (:class:`Bridge`: one per view, or with
+``context="place"`` one per place of the g³ bottleneck with a learned position code of the place,
+:class:`PlaceBridge`), a causal sequence model (Performer,
 exact Transformer or LSTM; fp32 even under bf16 autocast) relates it to the past, and its output,
 mapped back to a bottleneck volume, is added to the local bottleneck before decoding (the paper
 adds the two towers' embeddings). No normalisation statistic crosses frames (GroupNorm per frame,
@@ -51,6 +54,7 @@ from completion.towers import AttentionTower, LSTMTower
 ModelKind = Literal["single_view", "mvp", "mvt", "lstm"]
 MODEL_KINDS: tuple[str, ...] = get_args(ModelKind)
 PositionalEncoding = Literal["sinusoidal", "none"]
+Context = Literal["view", "place", "both"]
 Norm = Literal["group", "none"]
 
 State = dict[str, Tensor]
@@ -96,6 +100,21 @@ class ModelConfig:
     alone (:func:`completion.towers.value_angles`). Without it a value is a linear map of its
     token plus the position code and cannot turn with the offset: the memory can carry only
     what does not change as the camera moves. 30 matches the simulated pans (30° a view).
+    context: what a view's token is. "view": one token of D numbers per view, from the whole
+    bottleneck volume (older checkpoints). "place": one token of D numbers per place of the g³
+    bottleneck (g = G / 2**len(channels): 125 at G = 40) plus a learned code of the place; the
+    sequence model relates every place of a view to every place of this and earlier views
+    (attention, so the memory can carry a shape seen in one place to another, as when an object
+    slides behind another) or runs one recurrence per place (LSTM), and its output is added to
+    the bottleneck place by place. The Performer's memory keeps its size (H·M·E per layer).
+    "both": the "view" path (bridge, tower) and beside it a "place" path of ``place_dim`` numbers
+    per place (place_bridge, place_tower: same kind, heads, features and layers); their outputs
+    are added. A "view" checkpoint warm-starts it exactly (the place path's output starts at 0).
+    place_dim: D of the place path in "both" mode.
+    place_window: with tokens per place, attention reads only the places within this many places
+    (Chebyshev distance) of its own, in this and earlier views (0: every place). Local reads make
+    the Performer's memory one (S, z) per place (P·H·M·E per layer, still independent of L).
+    place_features: M of the place path in "both" mode (0: n_features).
     seed: weight initialisation and the initial FAVOR+ draw.
     """
 
@@ -116,6 +135,10 @@ class ModelConfig:
     pos_base: float = 10000.0
     qk_norm: bool = False
     value_rotation: float = 0.0
+    context: Context = "view"
+    place_dim: int = 64
+    place_window: int = 0
+    place_features: int = 0
     seed: int = 0
 
     def __post_init__(self) -> None:
@@ -126,6 +149,8 @@ class ModelConfig:
             raise ValueError(f"kernel must be 'softmax' or 'relu', got {self.kernel!r}")
         if self.norm not in get_args(Norm):
             raise ValueError(f"norm must be one of {get_args(Norm)}, got {self.norm!r}")
+        if self.context not in get_args(Context):
+            raise ValueError(f"context must be one of {get_args(Context)}, got {self.context!r}")
         if self.pos_encoding not in get_args(PositionalEncoding):
             raise ValueError(
                 f"pos_encoding must be one of {get_args(PositionalEncoding)}, "
@@ -145,10 +170,18 @@ class ModelConfig:
             )
         for name in (
             "embed_dim", "n_heads", "n_layers", "mlp_ratio", "n_features", "top_channels",
-            "token_channels",
+            "token_channels", "place_dim",
         ):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
+        if self.place_window < 0 or self.place_features < 0:
+            raise ValueError("place_window and place_features must be >= 0, got "
+                             f"{self.place_window} and {self.place_features}")
+        if self.place_window and self.context == "view":
+            raise ValueError("place_window needs tokens per place (context 'place' or 'both')")
+        if self.context == "both" and self.place_dim % (2 * self.n_heads):
+            raise ValueError(f"place_dim {self.place_dim} must be divisible by 2 * n_heads "
+                             f"{self.n_heads}")
         if self.embed_dim % self.n_heads:
             raise ValueError(
                 f"embed_dim {self.embed_dim} must be divisible by n_heads {self.n_heads}"
@@ -313,10 +346,10 @@ def _conv(c_in: int, c_out: int, k: int, norm: str, *, stride: int = 1) -> list[
 class Bridge(nn.Module):
     """Between the bottleneck volume and the context tower's tokens.
 
-    ``token``: (N, Cn, g, g, g) -> (N, D): a 1×1×1 conv to ``token_channels``, flattened, a dense
-    layer (no activation, so the token can be negative for the attention). ``volume``: (N, D) ->
-    (N, Cn, g, g, g), the mirror, whose last layer starts at zero so that a model warm-started
-    from Single-View weights begins exactly as that model.
+    ``token``: (N, Cn, g, g, g) -> (N, 1, D): a 1×1×1 conv to ``token_channels``, flattened, a
+    dense layer (no activation, so the token can be negative for the attention). ``volume``:
+    (N, 1, D) -> (N, Cn, g, g, g), the mirror, whose last layer starts at zero so that a model
+    warm-started from Single-View weights begins exactly as that model.
     """
 
     def __init__(self, config: ModelConfig) -> None:
@@ -331,13 +364,47 @@ class Bridge(nn.Module):
         nn.init.zeros_(self.expand.weight)
         nn.init.zeros_(self.expand.bias)
 
+    places = 1
+
     def token(self, bottom: Tensor) -> Tensor:
-        return self.to_token(torch.relu(self.reduce(bottom)).flatten(1))
+        return self.to_token(torch.relu(self.reduce(bottom)).flatten(1)).unsqueeze(1)
 
     def volume(self, token: Tensor) -> Tensor:
         g = self.g
-        x = torch.relu(self.from_token(token)).view(-1, self.ct, g, g, g)
+        x = torch.relu(self.from_token(token.squeeze(1))).view(-1, self.ct, g, g, g)
         return self.expand(x)
+
+
+class PlaceBridge(nn.Module):
+    """Bridge for ``context="place"``: a token per place of the bottleneck volume.
+
+    ``token``: (N, Cn, g, g, g) -> (N, P, D), P = g³ places in (i, j, k) order: a 1×1×1 conv to D
+    channels plus a learned code per place (the 3-D position the attention needs to move a shape).
+    ``volume``: (N, P, D) -> (N, Cn, g, g, g): per place a 1×1×1 conv, ReLU and a 1×1×1 conv that
+    starts at zero (as in :class:`Bridge`).
+    """
+
+    def __init__(self, config: ModelConfig) -> None:
+        super().__init__()
+        c, d = config.channels[-1], config.embed_dim
+        self.g = config.grid_size // 2 ** len(config.channels)
+        self.places = self.g**3
+        self.reduce = Conv3d(c, d, 1)
+        self.place = nn.Parameter(torch.randn(self.places, d) * 0.5)
+        self.lift = Conv3d(d, d, 1)
+        self.expand = Conv3d(d, c, 1)
+        nn.init.zeros_(self.expand.weight)
+        nn.init.zeros_(self.expand.bias)
+
+    def token(self, bottom: Tensor) -> Tensor:
+        x = self.reduce(bottom).flatten(2).transpose(1, 2)  # (N, P, D)
+        return x + self.place.to(x.dtype)
+
+    def volume(self, token: Tensor) -> Tensor:
+        g = self.g
+        x = token.transpose(1, 2).reshape(token.shape[0], -1, g, g, g)
+        x = x.contiguous(memory_format=torch.channels_last_3d)
+        return self.expand(torch.relu(self.lift(x)))
 
 
 # --------------------------------------------------------------------------------------------
@@ -360,16 +427,25 @@ class CompletionModel(nn.Module):
         self.encoder = Encoder(config)
         self.decoder = Decoder(config)
         self.context_encoder: Encoder | None = None
-        self.bridge: Bridge | None = None
+        self.bridge: Bridge | PlaceBridge | None = None
         self.tower: AttentionTower | LSTMTower | None = None
+        self.place_bridge: PlaceBridge | None = None
+        self.place_tower: AttentionTower | LSTMTower | None = None
         if config.kind != "single_view":
             self.context_encoder = Encoder(config)
-            self.bridge = Bridge(config)
-            if config.kind == "lstm":
-                self.tower = LSTMTower(config)
-            else:
-                mechanism = "performer" if config.kind == "mvp" else "exact"
-                self.tower = AttentionTower(config, mechanism=mechanism, generator=generator)
+            self.bridge = PlaceBridge(config) if config.context == "place" else Bridge(config)
+            self.tower = _tower(config, self.bridge.places, generator, prefix="")
+            if config.context == "both":
+                place = config.replace(embed_dim=config.place_dim, context="place",
+                                       n_features=config.place_features or config.n_features)
+                self.place_bridge = PlaceBridge(place)
+                self.place_tower = _tower(place, self.place_bridge.places, generator,
+                                          prefix="place.")
+
+    def _paths(self) -> list[tuple[Bridge | PlaceBridge, AttentionTower | LSTMTower]]:
+        """The context paths, (bridge, sequence model) each: none, one, or view and place."""
+        pairs = [(self.bridge, self.tower), (self.place_bridge, self.place_tower)]
+        return [(b, t) for b, t in pairs if b is not None and t is not None]
 
     # ---- input checks --------------------------------------------------------------------
 
@@ -400,25 +476,30 @@ class CompletionModel(nn.Module):
         local_frames = frames if local is None else local.flatten(0, 1)
         skips = self.encoder(local_frames)  # local tower: this frame alone
         bottom = skips[-1]
-        if self.tower is not None and self.bridge is not None:
-            tokens = self._tokens(frames).view(b, n, -1)  # (B, L, D)
-            with _full_precision(tokens):
-                context = self.tower(tokens.float())  # (B, L, D)
-            bottom = bottom + self.bridge.volume(context.flatten(0, 1)).to(bottom.dtype)
+        if self.context_encoder is not None:
+            features = self.context_encoder(frames)[-1]
+            for bridge, tower in self._paths():
+                tokens = bridge.token(features)
+                tokens = tokens.view(b, n, *tokens.shape[1:])  # (B, L, P, D)
+                with _full_precision(tokens):
+                    context = tower(tokens.float())  # (B, L, P, D)
+                bottom = bottom + bridge.volume(context.flatten(0, 1)).to(bottom.dtype)
         logits = self.decoder(bottom, skips, local_frames)  # (N, G, G, G)
         return logits.view(seq.shape)
 
-    def _tokens(self, frames: Tensor) -> Tensor:
-        """Context tower input: frames (N, G, G, G) -> one token per frame (N, D)."""
-        assert self.context_encoder is not None and self.bridge is not None
-        return self.bridge.token(self.context_encoder(frames)[-1])
-
-    def _context_step(self, frame: Tensor, state: State) -> tuple[Tensor, State]:
-        """One view through the context tower: (B, D) output and the tower's new state."""
-        assert self.tower is not None
-        tokens = self._tokens(frame)
-        with _full_precision(tokens):
-            return self.tower.step(tokens.float(), state["t"], state)
+    def _context_step(self, frame: Tensor, state: State) -> tuple[list[Tensor], State]:
+        """One view through the context tower: each path's bottleneck volume (B, Cn, g, g, g)
+        and the new state of every sequence model."""
+        assert self.context_encoder is not None
+        features = self.context_encoder(frame)[-1]
+        volumes, new = [], {}
+        for bridge, tower in self._paths():
+            tokens = bridge.token(features)
+            with _full_precision(tokens):
+                context, entries = tower.step(tokens.float(), state["t"], state)
+            volumes.append(bridge.volume(context))
+            new |= entries
+        return volumes, new
 
     # ---- streaming -----------------------------------------------------------------------
 
@@ -428,8 +509,8 @@ class CompletionModel(nn.Module):
             raise ValueError(f"batch must be >= 1, got {batch}")
         device = self.decoder.out.weight.device
         state: State = {"t": torch.zeros((), dtype=torch.int64, device=device)}
-        if self.tower is not None:
-            state |= self.tower.init_state(batch, device=device)
+        for _, tower in self._paths():
+            state |= tower.init_state(batch, device=device)
         return state
 
     def step(self, state: State, frame: Tensor) -> tuple[Tensor, State]:
@@ -442,9 +523,10 @@ class CompletionModel(nn.Module):
         skips = self.encoder(frame)
         bottom = skips[-1]
         new: State = {}
-        if self.tower is not None and self.bridge is not None:
-            context, new = self._context_step(frame, state)
-            bottom = bottom + self.bridge.volume(context).to(bottom.dtype)
+        if self.context_encoder is not None:
+            volumes, new = self._context_step(frame, state)
+            for volume in volumes:
+                bottom = bottom + volume.to(bottom.dtype)
         new["t"] = state["t"] + 1
         return self.decoder(bottom, skips, frame), new
 
@@ -456,7 +538,7 @@ class CompletionModel(nn.Module):
         frame = self._check_grids(frame, ndim=4, what="frame")
         self._check_state(state, batch=frame.shape[0])
         new: State = {}
-        if self.tower is not None:
+        if self.context_encoder is not None:
             new = self._context_step(frame, state)[1]
         new["t"] = state["t"] + 1
         return new
@@ -487,6 +569,17 @@ class CompletionModel(nn.Module):
     def n_params(self) -> int:
         """Trainable parameters (the FAVOR+ buffers are not counted)."""
         return sum(p.numel() for p in self.parameters() if p.requires_grad)
+
+
+def _tower(
+    config: ModelConfig, places: int, generator: torch.Generator, *, prefix: str
+) -> AttentionTower | LSTMTower:
+    """The sequence model of ``config.kind`` over ``places`` tokens a view; its state keys
+    start with ``prefix``."""
+    if config.kind == "lstm":
+        return LSTMTower(config, places=places, prefix=prefix)
+    mechanism = "performer" if config.kind == "mvp" else "exact"
+    return AttentionTower(config, mechanism=mechanism, generator=generator, prefix=prefix)
 
 
 def _full_precision(x: Tensor):

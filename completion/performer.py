@@ -130,13 +130,30 @@ def causal_linear_attention(phi_q: Tensor, phi_k: Tensor, v: Tensor) -> Tensor:
             f"expected phi_q, phi_k (..., L, M) and v (..., L, F) with matching axes, got "
             f"{tuple(phi_q.shape)}, {tuple(phi_k.shape)}, {tuple(v.shape)}"
         )
+    return block_causal_linear_attention(
+        phi_q.unsqueeze(-2), phi_k.unsqueeze(-2), v.unsqueeze(-2)
+    ).squeeze(-2)
+
+
+def block_causal_linear_attention(phi_q: Tensor, phi_k: Tensor, v: Tensor) -> Tensor:
+    """Causal over views, full within a view: position (i, p) attends to every (j, p') with
+    j ≤ i. phi_q, phi_k: (..., L, P, M); v: (..., L, P, F) -> (..., L, P, F) float32.
+
+    P = 1 is :func:`causal_linear_attention`, with the same operations (so the same bits).
+    """
+    if phi_q.shape != phi_k.shape or phi_k.shape[:-1] != v.shape[:-1] or phi_q.ndim < 3:
+        raise ValueError(
+            f"expected phi_q, phi_k (..., L, P, M) and v (..., L, P, F) with matching axes, got "
+            f"{tuple(phi_q.shape)}, {tuple(phi_k.shape)}, {tuple(v.shape)}"
+        )
     phi_q = phi_q.to(STATE_DTYPE)
     phi_k = phi_k.to(STATE_DTYPE)
     v = v.to(STATE_DTYPE)
-    s = torch.cumsum(phi_k.unsqueeze(-1) * v.unsqueeze(-2), dim=-3)  # (..., L, M, F)
-    z = torch.cumsum(phi_k, dim=-2)  # (..., L, M)
-    num = (phi_q.unsqueeze(-1) * s).sum(dim=-2)  # (..., L, F)
-    den = (phi_q * z).sum(dim=-1)  # (..., L)
+    kv = (phi_k.unsqueeze(-1) * v.unsqueeze(-2)).sum(dim=-3)  # (..., L, M, F)
+    s = torch.cumsum(kv, dim=-3)  # (..., L, M, F)
+    z = torch.cumsum(phi_k.sum(dim=-2), dim=-2)  # (..., L, M)
+    num = (phi_q.unsqueeze(-1) * s.unsqueeze(-3)).sum(dim=-2)  # (..., L, P, F)
+    den = (phi_q * z.unsqueeze(-2)).sum(dim=-1)  # (..., L, P)
     return _safe_divide(num, den)
 
 
@@ -171,12 +188,37 @@ def linear_attention_step(
             f"{tuple(phi_q.shape)}, {tuple(phi_k.shape)}, {tuple(v.shape)}, {tuple(s.shape)}, "
             f"{tuple(z.shape)}"
         )
+    out, s, z = block_linear_attention_step(
+        phi_q.unsqueeze(-2), phi_k.unsqueeze(-2), v.unsqueeze(-2), s, z
+    )
+    return out.squeeze(-2), s, z
+
+
+def block_linear_attention_step(
+    phi_q: Tensor, phi_k: Tensor, v: Tensor, s: Tensor, z: Tensor
+) -> tuple[Tensor, Tensor, Tensor]:
+    """One view of :func:`block_causal_linear_attention`: add its P places to the memory, then
+    read it at each. phi_q, phi_k: (..., P, M); v: (..., P, F); s: (..., M, F); z: (..., M).
+    Returns (out (..., P, F) float32, new s, new z); the memory's size does not depend on P's
+    history, only on M and F.
+    """
+    if (
+        phi_q.shape != phi_k.shape
+        or phi_k.shape[:-1] != v.shape[:-1]
+        or s.shape != (*phi_k.shape[:-2], phi_k.shape[-1], v.shape[-1])
+        or z.shape != (*phi_k.shape[:-2], phi_k.shape[-1])
+    ):
+        raise ValueError(
+            f"expected phi_q, phi_k (..., P, M), v (..., P, F), s (..., M, F), z (..., M), got "
+            f"{tuple(phi_q.shape)}, {tuple(phi_k.shape)}, {tuple(v.shape)}, {tuple(s.shape)}, "
+            f"{tuple(z.shape)}"
+        )
     phi_q = phi_q.to(STATE_DTYPE)
     phi_k = phi_k.to(STATE_DTYPE)
-    s = s + phi_k.unsqueeze(-1) * v.to(STATE_DTYPE).unsqueeze(-2)
-    z = z + phi_k
-    num = (phi_q.unsqueeze(-1) * s).sum(dim=-2)  # (..., F)
-    den = (phi_q * z).sum(dim=-1)  # (...,)
+    s = s + (phi_k.unsqueeze(-1) * v.to(STATE_DTYPE).unsqueeze(-2)).sum(dim=-3)
+    z = z + phi_k.sum(dim=-2)
+    num = (phi_q.unsqueeze(-1) * s.unsqueeze(-3)).sum(dim=-2)  # (..., P, F)
+    den = (phi_q * z.unsqueeze(-2)).sum(dim=-1)  # (..., P)
     return _safe_divide(num, den), s, z
 
 
@@ -185,11 +227,29 @@ def causal_softmax_attention(q: Tensor, k: Tensor, v: Tensor) -> Tensor:
 
     q, k: (..., L, E); v: (..., L, F). Returns (..., L, F) with weights softmax(q·k/√E) over j ≤ i.
     """
-    n = q.shape[-2]
-    scores = (q @ k.transpose(-1, -2)) * q.shape[-1] ** -0.5  # (..., L, L)
-    future = torch.ones(n, n, dtype=torch.bool, device=q.device).triu(1)
+    q, k, v = (x.unsqueeze(-2) for x in (q, k, v))  # one place per view
+    return block_causal_softmax_attention(q, k, v).squeeze(-2)
+
+
+def block_causal_softmax_attention(
+    q: Tensor, k: Tensor, v: Tensor, *, near: Tensor | None = None
+) -> Tensor:
+    """Exact softmax attention, causal over views and full within a view.
+
+    q, k: (..., L, P, E); v: (..., L, P, F) -> (..., L, P, F): position (i, p) weighs every
+    (j, p') with j ≤ i by softmax(q·k/√E); with ``near`` ((P, P) bool, e.g.
+    :func:`place_neighbours`) only the places p' near p.
+    """
+    n, places = q.shape[-3], q.shape[-2]
+    view = torch.arange(n, device=q.device).repeat_interleave(places)  # (L·P,)
+    q, k, v = (x.flatten(-3, -2) for x in (q, k, v))  # (..., L·P, ·)
+    scores = (q @ k.transpose(-1, -2)) * q.shape[-1] ** -0.5  # (..., L·P, L·P)
+    future = view.unsqueeze(1) < view.unsqueeze(0)
+    if near is not None:
+        future = future | ~near.repeat(n, n)
     scores = scores.masked_fill(future, float("-inf"))
-    return torch.softmax(scores, dim=-1) @ v
+    out = torch.softmax(scores, dim=-1) @ v
+    return out.unflatten(-2, (n, places))
 
 
 class FeatureMap(nn.Module):
@@ -238,3 +298,57 @@ class FeatureMap(nn.Module):
 
     def extra_repr(self) -> str:
         return f"dim={self.dim}, kernel={self.kernel!r}, n_features={self.n_features}"
+
+
+def neighbourhood_sum(x: Tensor, side: int, window: int) -> Tensor:
+    """Sum over each place's (2w+1)³ neighbourhood (zero outside the volume), w = ``window``.
+
+    x: (..., P, F) with P = side³ places in (i, j, k) order -> (..., P, F).
+    """
+    lead, features = x.shape[:-2], x.shape[-1]
+    if x.shape[-2] != side**3:
+        raise ValueError(f"expected {side**3} places (side {side}), got {x.shape[-2]}")
+    cube = x.reshape(-1, side, side, side, features).permute(0, 4, 1, 2, 3)  # (N, F, s, s, s)
+    k = 2 * window + 1
+    cube = nn.functional.avg_pool3d(cube, k, stride=1, padding=window) * k**3
+    return cube.permute(0, 2, 3, 4, 1).reshape(*lead, side**3, features)
+
+
+def local_causal_linear_attention(
+    phi_q: Tensor, phi_k: Tensor, v: Tensor, *, side: int, window: int
+) -> Tensor:
+    """Causal over views, local in space: place p of view i reads every place within ``window``
+    (Chebyshev distance, in places) of p in views j ≤ i. phi_q, phi_k: (..., L, P, M); v:
+    (..., L, P, F) -> (..., L, P, F) float32. The memory is one (S, z) per place: its size
+    depends on P, never on L.
+    """
+    phi_q, phi_k, v = phi_q.to(STATE_DTYPE), phi_k.to(STATE_DTYPE), v.to(STATE_DTYPE)
+    m, f = phi_k.shape[-1], v.shape[-1]
+    kv = (phi_k.unsqueeze(-1) * v.unsqueeze(-2)).flatten(-2)  # (..., L, P, M·F)
+    s = torch.cumsum(neighbourhood_sum(kv, side, window), dim=-3).unflatten(-1, (m, f))
+    z = torch.cumsum(neighbourhood_sum(phi_k, side, window), dim=-3)  # (..., L, P, M)
+    num = (phi_q.unsqueeze(-1) * s).sum(dim=-2)  # (..., L, P, F)
+    den = (phi_q * z).sum(dim=-1)
+    return _safe_divide(num, den)
+
+
+def local_linear_attention_step(
+    phi_q: Tensor, phi_k: Tensor, v: Tensor, s: Tensor, z: Tensor, *, side: int, window: int
+) -> tuple[Tensor, Tensor, Tensor]:
+    """One view of :func:`local_causal_linear_attention`. phi_q, phi_k: (..., P, M); v:
+    (..., P, F); s: (..., P, M, F); z: (..., P, M) -> (out (..., P, F), new s, new z)."""
+    phi_q, phi_k = phi_q.to(STATE_DTYPE), phi_k.to(STATE_DTYPE)
+    m, f = phi_k.shape[-1], v.shape[-1]
+    kv = (phi_k.unsqueeze(-1) * v.to(STATE_DTYPE).unsqueeze(-2)).flatten(-2)
+    s = s + neighbourhood_sum(kv, side, window).unflatten(-1, (m, f))
+    z = z + neighbourhood_sum(phi_k, side, window)
+    num = (phi_q.unsqueeze(-1) * s).sum(dim=-2)
+    den = (phi_q * z).sum(dim=-1)
+    return _safe_divide(num, den), s, z
+
+
+def place_neighbours(side: int, window: int, *, device: torch.device | None = None) -> Tensor:
+    """(P, P) bool: places within ``window`` of each other (Chebyshev distance, in places)."""
+    idx = torch.arange(side, device=device)
+    ijk = torch.stack(torch.meshgrid(idx, idx, idx, indexing="ij"), dim=-1).reshape(-1, 3)
+    return (ijk.unsqueeze(1) - ijk.unsqueeze(0)).abs().amax(dim=-1) <= window

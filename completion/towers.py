@@ -1,14 +1,17 @@
 """The context towers of the multi-view models: how a frame sees the past.
 
-A view's token gets a sinusoidal encoding of its index and goes through causal Transformer
-blocks, Performer (FAVOR+ or ReLU kernel, constant-size memory) for ``mvp``, exact softmax
-attention with a key/value cache for ``mvt``, or an LSTM for ``lstm``. The attention towers may turn
-each value by its view index (rotary values, ``ModelConfig.value_rotation``), so that the memory
-can hand a past view's features to the current view rotated by the view offset. Each has a parallel
-``forward`` over (B, L, D) and a streaming ``step`` over (B, D) with a flat state dict; both give
-the same numbers. Shapes use the axis letters of :mod:`completion.model`.
+A view's tokens (one, or one per place of the bottleneck volume: ``ModelConfig.context``) get a
+sinusoidal encoding of the view index and go through causal Transformer blocks, Performer
+(FAVOR+ or ReLU kernel, constant-size memory) for ``mvp``, exact softmax attention with a
+key/value cache for ``mvt``, or an LSTM for ``lstm``. The attention towers may turn each value by
+its view index (rotary values, ``ModelConfig.value_rotation``), so that the memory can hand a
+past view's features to the current view rotated by the view offset. Each has a parallel
+``forward`` over (B, L, P, D) and a streaming ``step`` over (B, P, D) with a flat state dict; both
+give the same numbers. P is the number of tokens per view: attention is causal over views and full
+within one (a place reads every place of this and earlier views, or with ``place_window`` only the
+places near it); the LSTM runs one recurrence per place. Shapes use the axis letters of
+:mod:`completion.model`.
 """
-
 from __future__ import annotations
 
 import math
@@ -19,10 +22,13 @@ from torch import Tensor, nn
 
 from completion.performer import (
     FeatureMap,
-    causal_linear_attention,
-    causal_softmax_attention,
+    block_causal_linear_attention,
+    block_causal_softmax_attention,
+    block_linear_attention_step,
     init_linear_attention_state,
-    linear_attention_step,
+    local_causal_linear_attention,
+    local_linear_attention_step,
+    place_neighbours,
 )
 
 if TYPE_CHECKING:
@@ -94,6 +100,9 @@ class CausalSelfAttention(nn.Module):
         self.out = nn.Linear(config.embed_dim, config.embed_dim)
         self.qk_norm = config.qk_norm
         self.value_rotation = config.value_rotation
+        # with a token per place: attend only within place_window places (0: everywhere)
+        self.side = config.grid_size // 2 ** len(config.channels)
+        self.window = config.place_window if config.context == "place" else 0
         self.features: FeatureMap | None = None
         if mechanism == "performer":
             self.features = FeatureMap(
@@ -119,57 +128,71 @@ class CausalSelfAttention(nn.Module):
         return value_angles(positions, self.head_dim, self.value_rotation)
 
     def forward(self, x: Tensor) -> Tensor:
-        """Parallel form: x (B, L, D) -> (B, L, D)."""
-        q, k, v = (t.transpose(1, 2) for t in self._heads(x))  # (B, H, L, E)
+        """Parallel form: x (B, L, P, D) -> (B, L, P, D)."""
+        q, k, v = (t.permute(0, 3, 1, 2, 4) for t in self._heads(x))  # (B, H, L, P, E)
         angles = self._angles(torch.arange(x.shape[1], device=x.device))  # (L, E/2)
         if angles is not None:
+            angles = angles.unsqueeze(-2)  # (L, 1, E/2): one turn per view, every place
             v = rotate_pairs(v, angles)
         if self.features is not None:
-            y = causal_linear_attention(
-                self.features(q, is_query=True), self.features(k, is_query=False), v
-            )
+            phi_q, phi_k = self.features(q, is_query=True), self.features(k, is_query=False)
+            if self.window:
+                y = local_causal_linear_attention(
+                    phi_q, phi_k, v, side=self.side, window=self.window
+                )
+            else:
+                y = block_causal_linear_attention(phi_q, phi_k, v)
         else:
-            y = causal_softmax_attention(q, k, v)
+            near = place_neighbours(self.side, self.window, device=x.device)
+            y = block_causal_softmax_attention(q, k, v, near=near if self.window else None)
         if angles is not None:
             y = rotate_pairs(y, -angles)
-        y = y.to(x.dtype).transpose(1, 2).flatten(2)  # (B, L, D)
+        y = y.to(x.dtype).permute(0, 2, 3, 1, 4).flatten(3)  # (B, L, P, D)
         return self.out(y)
 
     def init_state(self, batch: int, *, device: torch.device, prefix: str) -> State:
         if self.features is not None:
+            places = (self.side**3,) if self.window else ()  # one memory per place
             s, z = init_linear_attention_state(
-                (batch, self.n_heads), self.features.n_features, self.head_dim, device=device
+                (batch, self.n_heads, *places), self.features.n_features, self.head_dim,
+                device=device,
             )
             return {f"{prefix}S": s, f"{prefix}z": z}
         empty = torch.zeros(batch, self.n_heads, 0, self.head_dim, device=device)
         return {f"{prefix}k": empty, f"{prefix}v": empty.clone()}
 
     def step(self, x: Tensor, t: Tensor, state: State, *, prefix: str) -> tuple[Tensor, State]:
-        """Streaming form: x (B, D), t 0-d view index -> (B, D) and this layer's new state
-        entries."""
-        q, k, v = self._heads(x)  # (B, H, E)
+        """Streaming form: x (B, P, D), t 0-d view index -> (B, P, D) and this layer's new
+        state entries."""
+        q, k, v = (u.transpose(1, 2) for u in self._heads(x))  # (B, H, P, E)
         angles = self._angles(t)  # (E/2,)
         if angles is not None:
             v = rotate_pairs(v, angles)
         if self.features is not None:
-            y, s, z = linear_attention_step(
-                self.features(q, is_query=True),
-                self.features(k, is_query=False),
-                v,
-                state[f"{prefix}S"],
-                state[f"{prefix}z"],
-            )
+            phi_q, phi_k = self.features(q, is_query=True), self.features(k, is_query=False)
+            s, z = state[f"{prefix}S"], state[f"{prefix}z"]
+            if self.window:
+                y, s, z = local_linear_attention_step(
+                    phi_q, phi_k, v, s, z, side=self.side, window=self.window
+                )
+            else:
+                y, s, z = block_linear_attention_step(phi_q, phi_k, v, s, z)
             new = {f"{prefix}S": s, f"{prefix}z": z}
         else:
-            keys = torch.cat((state[f"{prefix}k"], k.unsqueeze(2).to(torch.float32)), dim=2)
-            values = torch.cat((state[f"{prefix}v"], v.unsqueeze(2).to(torch.float32)), dim=2)
-            scores = (keys @ q.to(torch.float32).unsqueeze(-1)).squeeze(-1)  # (B, H, T)
+            # the cache grows by P keys per view: (B, H, T·P, E)
+            keys = torch.cat((state[f"{prefix}k"], k.to(torch.float32)), dim=2)
+            values = torch.cat((state[f"{prefix}v"], v.to(torch.float32)), dim=2)
+            scores = q.to(torch.float32) @ keys.transpose(-1, -2)  # (B, H, P, T·P)
+            if self.window:
+                near = place_neighbours(self.side, self.window, device=x.device)
+                far = ~near.repeat(1, keys.shape[2] // near.shape[0])
+                scores = scores.masked_fill(far, float("-inf"))
             weights = torch.softmax(scores * self.head_dim**-0.5, dim=-1)
-            y = (weights.unsqueeze(-2) @ values).squeeze(-2)  # (B, H, E)
+            y = weights @ values  # (B, H, P, E)
             new = {f"{prefix}k": keys, f"{prefix}v": values}
         if angles is not None:
             y = rotate_pairs(y, -angles)
-        return self.out(y.to(x.dtype).flatten(1)), new
+        return self.out(y.to(x.dtype).transpose(1, 2).flatten(2)), new
 
 
 class Block(nn.Module):
@@ -191,12 +214,12 @@ class Block(nn.Module):
             nn.Linear(d, config.mlp_ratio * d), nn.ReLU(), nn.Linear(config.mlp_ratio * d, d)
         )
 
-    def forward(self, x: Tensor) -> Tensor:  # (B, L, D) -> (B, L, D)
+    def forward(self, x: Tensor) -> Tensor:  # (B, L, P, D) -> (B, L, P, D)
         x = x + self.attn(self.norm1(x))
         return x + self.mlp(self.norm2(x))
 
     def step(self, x: Tensor, t: Tensor, state: State, *, prefix: str) -> tuple[Tensor, State]:
-        a, new = self.attn.step(self.norm1(x), t, state, prefix=prefix)  # (B, D)
+        a, new = self.attn.step(self.norm1(x), t, state, prefix=prefix)  # (B, P, D)
         x = x + a
         return x + self.mlp(self.norm2(x)), new
 
@@ -210,9 +233,11 @@ class AttentionTower(nn.Module):
         *,
         mechanism: Literal["performer", "exact"],
         generator: torch.Generator | None = None,
+        prefix: str = "",
     ) -> None:
         super().__init__()
         self.config = config
+        self.prefix = prefix  # of its state keys
         self.blocks = nn.ModuleList(
             Block(config, mechanism=mechanism, generator=generator) for _ in range(config.n_layers)
         )
@@ -222,9 +247,9 @@ class AttentionTower(nn.Module):
         if self.config.pos_encoding == "none":
             return x
         pe = sinusoidal_encoding(positions, self.config.embed_dim, base=self.config.pos_base)
-        return x + pe.to(x.dtype)
+        return x + pe.unsqueeze(-2).to(x.dtype)  # the same code at every place of a view
 
-    def forward(self, x: Tensor) -> Tensor:  # (B, L, D) -> (B, L, D)
+    def forward(self, x: Tensor) -> Tensor:  # (B, L, P, D) -> (B, L, P, D)
         x = self._position(x, torch.arange(x.shape[1], device=x.device))
         for block in self.blocks:
             x = block(x)
@@ -233,35 +258,41 @@ class AttentionTower(nn.Module):
     def init_state(self, batch: int, *, device: torch.device) -> State:
         state: State = {}
         for i, block in enumerate(self.blocks):
-            state |= block.attn.init_state(batch, device=device, prefix=f"layer{i}.")
+            state |= block.attn.init_state(batch, device=device, prefix=f"{self.prefix}layer{i}.")
         return state
 
     def step(self, x: Tensor, t: Tensor, state: State) -> tuple[Tensor, State]:
-        """x (B, D), t 0-d view index -> (B, D), new tower state."""
+        """x (B, P, D), t 0-d view index -> (B, P, D), new tower state."""
         x = self._position(x, t.expand(x.shape[0]))
         new: State = {}
         for i, block in enumerate(self.blocks):
-            x, entries = block.step(x, t, state, prefix=f"layer{i}.")
+            x, entries = block.step(x, t, state, prefix=f"{self.prefix}layer{i}.")
             new |= entries
         return self.norm(x), new
 
 
 class LSTMTower(nn.Module):
-    """LSTM over frame embeddings (no positional encoding: the recurrence orders the views)."""
+    """LSTM over the views' tokens, one recurrence per place (shared weights); no positional
+    encoding: the recurrence orders the views."""
 
-    def __init__(self, config: ModelConfig) -> None:
+    def __init__(self, config: ModelConfig, *, places: int = 1, prefix: str = "") -> None:
         super().__init__()
+        self.h, self.c = f"{prefix}lstm.h", f"{prefix}lstm.c"  # state keys
         self.n_layers = config.n_layers
         self.dim = config.embed_dim
+        self.places = places
         self.lstm = nn.LSTM(config.embed_dim, config.embed_dim, config.n_layers, batch_first=True)
 
-    def forward(self, x: Tensor) -> Tensor:  # (B, L, D) -> (B, L, D)
-        return self.lstm(x)[0]
+    def forward(self, x: Tensor) -> Tensor:  # (B, L, P, D) -> (B, L, P, D)
+        b, n, p, d = x.shape
+        y = self.lstm(x.transpose(1, 2).reshape(b * p, n, d))[0]  # (B·P, L, D)
+        return y.view(b, p, n, d).transpose(1, 2)
 
     def init_state(self, batch: int, *, device: torch.device) -> State:
-        h = torch.zeros(self.n_layers, batch, self.dim, device=device)
-        return {"lstm.h": h, "lstm.c": h.clone()}
+        h = torch.zeros(self.n_layers, batch * self.places, self.dim, device=device)
+        return {self.h: h, self.c: h.clone()}
 
     def step(self, x: Tensor, t: Tensor, state: State) -> tuple[Tensor, State]:
-        y, (h, c) = self.lstm(x.unsqueeze(1), (state["lstm.h"], state["lstm.c"]))
-        return y.squeeze(1), {"lstm.h": h, "lstm.c": c}
+        b, p, d = x.shape
+        y, (h, c) = self.lstm(x.reshape(b * p, 1, d), (state[self.h], state[self.c]))
+        return y.view(b, p, d), {self.h: h, self.c: c}

@@ -32,20 +32,28 @@ torch.set_num_threads(1)
 G = 40
 ATOL = 1e-5
 
-# (kind, kernel, rotary values in degrees per view): every model, MVP with both kernels, and the
-# attention models with rotary values
+# (kind, kernel, rotary values in degrees per view, context): every model, MVP with both kernels,
+# the attention models with rotary values, and the sequence models with a token per place
 VARIANTS = [
-    ("single_view", "softmax", 0),
-    ("mvp", "softmax", 0),
-    ("mvp", "relu", 0),
-    ("mvt", "softmax", 0),
-    ("lstm", "softmax", 0),
-    ("mvp", "softmax", 30),
-    ("mvt", "softmax", 30),
+    ("single_view", "softmax", 0, "view"),
+    ("mvp", "softmax", 0, "view"),
+    ("mvp", "relu", 0, "view"),
+    ("mvt", "softmax", 0, "view"),
+    ("lstm", "softmax", 0, "view"),
+    ("mvp", "softmax", 30, "view"),
+    ("mvt", "softmax", 30, "view"),
+    ("mvp", "softmax", 30, "place"),
+    ("mvt", "softmax", 30, "place"),
+    ("lstm", "softmax", 0, "place"),
+    ("mvp", "softmax", 30, "both"),
+    ("lstm", "softmax", 0, "both"),
+    ("mvp", "softmax", 30, "both-local"),
+    ("mvt", "softmax", 30, "place-local"),
 ]
 IDS = [
     (f"{kind}-{kernel}" if kind == "mvp" else kind) + (f"-rot{rot}" if rot else "")
-    for kind, kernel, rot in VARIANTS
+    + ("" if context == "view" else f"-{context}")
+    for kind, kernel, rot, context in VARIANTS
 ]
 
 
@@ -60,6 +68,7 @@ def tiny_config(kind: str = "mvp", kernel: str = "softmax", **overrides: object)
         "n_heads": 2,
         "n_layers": 2,
         "n_features": 16,
+        "place_dim": 8,
         "seed": 0,
     }
     values.update(overrides)
@@ -100,8 +109,10 @@ def stream(model: CompletionModel, seq: torch.Tensor) -> torch.Tensor:
 
 @pytest.fixture(params=VARIANTS, ids=IDS)
 def tiny_model(request: pytest.FixtureRequest) -> CompletionModel:
-    kind, kernel, rotation = request.param
-    return scrambled(tiny_config(kind, kernel, value_rotation=rotation))
+    kind, kernel, rotation, context = request.param
+    context, _, local = context.partition("-")  # "-local": attention within one place
+    return scrambled(tiny_config(kind, kernel, value_rotation=rotation, context=context,
+                                 place_window=int(bool(local))))
 
 
 # ---- the streaming contract -----------------------------------------------------------------
@@ -197,6 +208,57 @@ def test_mvp_state_size_is_independent_of_views_and_mvt_cache_grows() -> None:
         sizes.append(state_nbytes(state))
     assert sizes[0] < sizes[1] < sizes[2]
     assert state["layer0.k"].shape[2] == 3
+
+
+@torch.no_grad()
+def test_place_tokens_keep_the_mvp_state_constant_and_grow_the_mvt_cache_by_places() -> None:
+    g = torch.Generator().manual_seed(0)
+    frames = (torch.rand(3, 1, G, G, G, generator=g) < 0.05).float()
+    mvp = scrambled(tiny_config("mvp", context="place"))
+    state = mvp.step(mvp.init_state(1), frames[0])[1]
+    shapes_1, bytes_1 = {k: v.shape for k, v in state.items()}, state_nbytes(state)
+    for t in range(1, 1000):
+        state = mvp.advance(state, frames[t % 3])
+    assert int(state["t"]) == 1000
+    assert {k: v.shape for k, v in state.items()} == shapes_1
+    assert state_nbytes(state) == bytes_1
+    # H·M·E per layer, whatever the number of places (125 at G = 40)
+    assert state["layer0.S"].shape == (1, 2, 16, 8)
+
+    mvt = scrambled(tiny_config("mvt", context="place"))
+    state = mvt.init_state(1)
+    for t in range(2):
+        state = mvt.advance(state, frames[t])
+    assert state["layer0.k"].shape == (1, 2, 2 * 125, 8)  # 125 places per view
+
+    # local reads (place_window): one memory per place, still the same size at every view
+    local = scrambled(tiny_config("mvp", context="both", place_window=1, place_features=4))
+    state = local.step(local.init_state(1), frames[0])[1]
+    shapes_1 = {k: v.shape for k, v in state.items()}
+    for t in range(1, 1000):
+        state = local.advance(state, frames[t % 3])
+    assert {k: v.shape for k, v in state.items()} == shapes_1
+    assert state["place.layer0.S"].shape == (1, 2, 125, 4, 4)  # (B, H, P, M, E)
+    assert state["layer0.S"].shape == (1, 2, 16, 8)  # the view path's, as before
+
+
+@torch.no_grad()
+def test_attention_over_places_reads_other_places_of_past_views_and_lstm_does_not() -> None:
+    """With a token per place, attention relates every place to every place of earlier views
+    (what moves a shape seen in one place to another); the LSTM keeps one recurrence per place."""
+    cases = (("mvp", 0, True), ("mvt", 0, True), ("lstm", 0, False), ("mvp", 1, False),
+             ("mvt", 1, False))  # place 77 = (3, 0, 2) is more than one place from place 0
+    for kind, window, moves in cases:
+        tower = scrambled(tiny_config(kind, context="place", place_window=window)).tower
+        x = torch.randn(1, 3, 125, 16, generator=torch.Generator().manual_seed(1))
+        changed = x.clone()
+        changed[0, 0, 0] = -3 * x[0, 0, 0]  # view 0, place 0 only
+        y, y2 = tower(x), tower(changed)
+        assert (y2[0, 0, 0] - y[0, 0, 0]).abs().max() > 1e-3  # the changed token itself
+        # a later view at another place sees the change only through attention
+        assert ((y2[0, 2, 77] - y[0, 2, 77]).abs().max() > 1e-4) == moves, (kind, window)
+        if window:  # place 31 = (1, 1, 1) is its neighbour
+            assert (y2[0, 2, 31] - y[0, 2, 31]).abs().max() > 1e-4, kind
 
 
 @torch.no_grad()
@@ -320,6 +382,10 @@ def test_config_round_trips_through_a_plain_dict() -> None:
         ({"value_rotation": float("nan")}, "value_rotation must be in"),
         ({"kind": "lstm", "value_rotation": 30}, "needs an attention model"),
         ({"kind": "single_view", "value_rotation": 30}, "needs an attention model"),
+        ({"context": "volume"}, "context must be one of"),
+        ({"context": "both", "place_dim": 6}, "place_dim 6 must be divisible"),
+        ({"place_window": 1}, "place_window needs tokens per place"),
+        ({"context": "place", "place_window": -1}, "must be >= 0"),
     ],
 )
 def test_bad_config_raises(overrides: dict[str, object], message: str) -> None:
@@ -506,6 +572,17 @@ def test_warm_start_across_kinds_takes_every_shared_tensor(tmp_path):
     with pytest.raises(ValueError, match="shares no U-Net"):
         warm_start(narrow, tmp_path / "mvp.pt")
 
+    # a place path beside the trained view path: everything loads but the place path, whose
+    # output starts at zero, so the model begins exactly as the checkpoint's MVP
+    both = build_model(tiny_config("mvp", seed=4, context="both"))
+    fresh = warm_start(both, tmp_path / "mvp.pt")
+    assert fresh and all(name.startswith(("place_bridge.", "place_tower.")) for name in fresh)
+    torch.testing.assert_close(both.bridge.expand.weight, mine["bridge.expand.weight"])
+    assert not both.place_bridge.expand.weight.any()
+    torch.testing.assert_close(both.eval()(seq), source.eval()(seq))
+    state = both.init_state(1)
+    assert {"place.layer0.S", "place.layer0.z", "layer0.S", "layer0.z"} <= state.keys()
+
 
 def test_config_overrides_parse_numbers_tuples_and_booleans():
     from completion.train import _overrides
@@ -524,8 +601,8 @@ def test_rotary_values_turn_each_past_value_by_the_view_offset() -> None:
     config = tiny_config("mvt", value_rotation=30, embed_dim=32, n_heads=2)
     layer = CausalSelfAttention(config, mechanism="exact")
     g = torch.Generator().manual_seed(0)
-    x = torch.randn(1, 6, 32, generator=g)
-    q, k, v = (t[0].transpose(0, 1) for t in layer._heads(x))  # (H, L, E)
+    x = torch.randn(1, 6, 1, 32, generator=g)  # (B, L, P, D), one token per view
+    q, k, v = (t[0, :, 0].transpose(0, 1) for t in layer._heads(x))  # (H, L, E)
     e = config.embed_dim // config.n_heads
     angles = value_angles(torch.arange(6), e, 30.0)  # (L, E/2)
     assert torch.allclose(angles[1, :8], torch.tensor([0, 1, 2, 3, 4, 5, 6, 0.0]) * torch.pi / 6)
@@ -537,5 +614,5 @@ def test_rotary_values_turn_each_past_value_by_the_view_offset() -> None:
             turned = rotate_pairs(v[:, s_], angles[s_] - angles[t])
             expected[:, t] += weights[:, t, s_, None] * turned
     expected = layer.out(expected.transpose(0, 1).flatten(1))
-    torch.testing.assert_close(layer(x)[0], expected, atol=1e-5, rtol=0)
+    torch.testing.assert_close(layer(x)[0, :, 0], expected, atol=1e-5, rtol=0)
     torch.testing.assert_close(rotate_pairs(rotate_pairs(v, angles), -angles), v, atol=1e-6, rtol=0)
