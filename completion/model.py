@@ -108,8 +108,9 @@ class ModelConfig:
     slides behind another) or runs one recurrence per place (LSTM), and its output is added to
     the bottleneck place by place. The Performer's memory keeps its size (H·M·E per layer).
     "both": the "view" path (bridge, tower) and beside it a "place" path of ``place_dim`` numbers
-    per place (place_bridge, place_tower: same kind, heads, features and layers); their outputs
-    are added. A "view" checkpoint warm-starts it exactly (the place path's output starts at 0).
+    per place (place_bridge, place_tower: same kind, heads and layers, M = place_features or
+    n_features); their outputs are added. A "view" checkpoint warm-starts it exactly (the place
+    path's output starts at 0).
     place_dim: D of the place path in "both" mode.
     place_window: with tokens per place, attention reads only the places within this many places
     (Chebyshev distance) of its own, in this and earlier views (0: every place). Local reads make
