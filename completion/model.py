@@ -461,10 +461,14 @@ class CompletionModel(nn.Module):
 
     # ---- parallel ------------------------------------------------------------------------
 
-    def forward(self, seq: Tensor, *, local: Tensor | None = None) -> Tensor:
+    def forward(
+        self, seq: Tensor, *, local: Tensor | None = None, drop_view_path: Tensor | None = None
+    ) -> Tensor:
         """``local``: what the local tower and the decoder's raw-input skip see instead of
         ``seq`` (same shape); training blanks views there so that the context tower must carry
         the shape (``completion.train --blank-local``). The context tower always sees ``seq``.
+        ``drop_view_path``: (B,) bool, ``context="both"`` only: those sequences go without the
+        per-view path, so that the place path must carry the memory (``--drop-view-path``).
         """
         seq = self._check_grids(seq, ndim=5, what="seq")
         b, n = seq.shape[:2]
@@ -475,6 +479,12 @@ class CompletionModel(nn.Module):
                 raise ValueError(f"local must have seq's shape {tuple(seq.shape)}, "
                                  f"got {tuple(local.shape)}")
         local_frames = frames if local is None else local.flatten(0, 1)
+        if drop_view_path is not None and (
+            self.place_bridge is None or tuple(drop_view_path.shape) != (b,)
+        ):
+            raise ValueError("drop_view_path needs a model with context='both' and shape (B,) "
+                             f"= ({b},), got {tuple(drop_view_path.shape)} for context "
+                             f"{self.config.context!r}")
         skips = self.encoder(local_frames)  # local tower: this frame alone
         bottom = skips[-1]
         if self.context_encoder is not None:
@@ -484,7 +494,11 @@ class CompletionModel(nn.Module):
                 tokens = tokens.view(b, n, *tokens.shape[1:])  # (B, L, P, D)
                 with _full_precision(tokens):
                     context = tower(tokens.float())  # (B, L, P, D)
-                bottom = bottom + bridge.volume(context.flatten(0, 1)).to(bottom.dtype)
+                volume = bridge.volume(context.flatten(0, 1)).to(bottom.dtype)
+                if drop_view_path is not None and bridge is self.bridge:
+                    keep = (~drop_view_path).repeat_interleave(n).to(volume.dtype)  # (N,)
+                    volume = volume * keep.view(-1, 1, 1, 1, 1)
+                bottom = bottom + volume
         logits = self.decoder(bottom, skips, local_frames)  # (N, G, G, G)
         return logits.view(seq.shape)
 

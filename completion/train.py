@@ -398,8 +398,11 @@ def _train(args: argparse.Namespace, world: World, device: torch.device) -> dict
         local = None if local is None else local.to(device)
         for group in opt.param_groups:  # cosine decay to a tenth over the step budget
             group["lr"] = args.lr * (0.1 + 0.45 * (1 + math.cos(math.pi * step / args.steps)))
+        drop = None
+        if args.drop_view_path:  # drawn only when asked, so older commands repeat exactly
+            drop = (torch.rand(x.shape[0], generator=gen) < args.drop_view_path).to(device)
         with autocast:
-            logits = net(x, local=local)
+            logits = net(x, local=local, drop_view_path=drop)
         if weights is None:
             loss = F.binary_cross_entropy_with_logits(logits.float(), y, pos_weight=pos_weight)
         else:  # per-view mean, weighed along the sequence
@@ -679,6 +682,9 @@ def main(argv: list[str] | None = None) -> int:
                    "context tower alone with probability P (the local tower still sees it), so "
                    "that the memory of earlier views must be merged with the current view; "
                    "0 = off")
+    p.add_argument("--drop-view-path", type=float, default=0.0, metavar="P",
+                   help="--config context=both: train each sequence without the per-view path "
+                   "with probability P, so that the place path must carry the memory; 0 = off")
     p.add_argument("--late-weight", type=float, default=1.0, metavar="W",
                    help="multi-view models: the last view's loss weighs W times the first's, "
                    "linear in between (mean 1), so that the gradient favours what the memory adds "
@@ -694,6 +700,11 @@ def main(argv: list[str] | None = None) -> int:
             p.error(f"{name} must be in [0, 1), got {value}")
         if value and args.model == "single_view":
             p.error(f"{name} needs a multi-view model (single_view has no context tower)")
+    if not 0.0 <= args.drop_view_path < 1.0:
+        p.error(f"--drop-view-path must be in [0, 1), got {args.drop_view_path}")
+    if args.drop_view_path and args.config.get("context") != "both":
+        p.error("--drop-view-path needs --config context=both (a place path beside the "
+                "per-view one)")
     if not (1.0 <= args.late_weight <= 10.0):
         p.error(f"--late-weight must be in [1, 10], got {args.late_weight}")
     if args.late_weight != 1 and args.model == "single_view":

@@ -616,3 +616,20 @@ def test_rotary_values_turn_each_past_value_by_the_view_offset() -> None:
     expected = layer.out(expected.transpose(0, 1).flatten(1))
     torch.testing.assert_close(layer(x)[0, :, 0], expected, atol=1e-5, rtol=0)
     torch.testing.assert_close(rotate_pairs(rotate_pairs(v, angles), -angles), v, atol=1e-6, rtol=0)
+
+
+@torch.no_grad()
+def test_drop_view_path_leaves_those_sequences_to_the_place_path() -> None:
+    both = scrambled(tiny_config("mvp", context="both"))
+    seq = random_views(2, 3)
+    drop = torch.tensor([True, False])
+    out = both(seq, drop_view_path=drop)
+    torch.testing.assert_close(out[1], both(seq[1:])[0])  # kept: the full model
+    with torch.no_grad():
+        both.bridge.expand.weight.zero_()
+        both.bridge.expand.bias.zero_()
+    torch.testing.assert_close(out[0], both(seq[:1])[0])  # dropped: as without the view path
+    with pytest.raises(ValueError, match="context='both' and shape"):
+        both(seq, drop_view_path=torch.tensor([True]))
+    with pytest.raises(ValueError, match="context='both'"):
+        scrambled(tiny_config("mvp"))(seq, drop_view_path=drop)

@@ -333,3 +333,18 @@ def test_condition_weight_draws_a_condition_more_often_and_rejects_bad_values(
         with pytest.raises(SystemExit):
             main(["--model", "mvp", *bad, "--out", "x.pt"])
         assert says in capsys.readouterr().err
+
+
+def test_drop_view_path_trains_a_place_path_and_needs_one(shards, tmp_path, capsys):
+    args = ["--model", "mvp", "--views", "2", "--train-dir", str(shards / "train"),
+            "--val-dir", str(shards / "val"), "--train-count", "0", "--val-count", "0",
+            "--steps", "2", "--val-every", "2", "--config", TINY + ",context=both,place_dim=8",
+            "--drop-view-path", "0.5", "--out", str(tmp_path / "w.pt"), "--quiet"]
+    assert main(args) == 0
+    assert read_checkpoint(tmp_path / "w.pt")["config"]["context"] == "both"
+    capsys.readouterr()
+    for bad, says in ((["--drop-view-path", "0.5"], "needs --config context=both"),
+                      (["--drop-view-path", "1", "--config", "context=both"], "in [0, 1)")):
+        with pytest.raises(SystemExit):
+            main(["--model", "mvp", *bad, "--out", "x.pt"])
+        assert says in capsys.readouterr().err
