@@ -103,6 +103,9 @@ class CausalSelfAttention(nn.Module):
         # with a token per place: attend only within place_window places (0: everywhere)
         self.side = config.grid_size // 2 ** len(config.channels)
         self.window = config.place_window if config.context == "place" else 0
+        # exact attention's (P, P) mask of the places each place may read; built once
+        near = place_neighbours(self.side, self.window) if self.window else None
+        self.register_buffer("near", near, persistent=False)
         self.features: FeatureMap | None = None
         if mechanism == "performer":
             self.features = FeatureMap(
@@ -143,8 +146,7 @@ class CausalSelfAttention(nn.Module):
             else:
                 y = block_causal_linear_attention(phi_q, phi_k, v)
         else:
-            near = place_neighbours(self.side, self.window, device=x.device)
-            y = block_causal_softmax_attention(q, k, v, near=near if self.window else None)
+            y = block_causal_softmax_attention(q, k, v, near=self.near)
         if angles is not None:
             y = rotate_pairs(y, -angles)
         y = y.to(x.dtype).permute(0, 2, 3, 1, 4).flatten(3)  # (B, L, P, D)
@@ -183,9 +185,8 @@ class CausalSelfAttention(nn.Module):
             keys = torch.cat((state[f"{prefix}k"], k.to(torch.float32)), dim=2)
             values = torch.cat((state[f"{prefix}v"], v.to(torch.float32)), dim=2)
             scores = q.to(torch.float32) @ keys.transpose(-1, -2)  # (B, H, P, T·P)
-            if self.window:
-                near = place_neighbours(self.side, self.window, device=x.device)
-                far = ~near.repeat(1, keys.shape[2] // near.shape[0])
+            if self.near is not None:
+                far = ~self.near.repeat(1, keys.shape[2] // self.near.shape[0])
                 scores = scores.masked_fill(far, float("-inf"))
             weights = torch.softmax(scores * self.head_dim**-0.5, dim=-1)
             y = weights @ values  # (B, H, P, E)
