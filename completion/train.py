@@ -266,6 +266,25 @@ def view_weights(views: int, late: float) -> torch.Tensor:
     return ramp / ramp.mean()
 
 
+PLACE_PATH_PREFIXES = ("place_bridge.", "place_tower.")
+
+
+def param_groups(model: torch.nn.Module, lr: float, place_lr: float | None) -> list[dict]:
+    """Adam's parameter groups: one at ``lr``, or, with ``place_lr``, the place path of a
+    ``context="both"`` model (``place_bridge``, ``place_tower``) in a second group at that rate,
+    so a fresh path beside trained weights can learn faster than they move. Each group keeps
+    its ``base_lr`` for the schedule."""
+    named = list(model.named_parameters())
+    if place_lr is None:
+        return [{"params": [p for _, p in named], "base_lr": lr}]
+    place = [p for n, p in named if n.startswith(PLACE_PATH_PREFIXES)]
+    if not place:
+        raise ValueError("--place-lr needs a model with a place path (--config context=both)")
+    rest = [p for n, p in named if not n.startswith(PLACE_PATH_PREFIXES)]
+    return [{"params": rest, "lr": lr, "base_lr": lr},
+            {"params": place, "lr": place_lr, "base_lr": place_lr}]
+
+
 def train(args: argparse.Namespace) -> dict:
     """One training run; under torchrun each rank trains on its own part of the data."""
     world, device = setup(args.device)
@@ -324,7 +343,7 @@ def _train(args: argparse.Namespace, world: World, device: torch.device) -> dict
         net = torch.nn.parallel.DistributedDataParallel(
             model, device_ids=[device.index] if device.type == "cuda" else None
         )
-    opt = torch.optim.Adam(model.parameters(), lr=args.lr)
+    opt = torch.optim.Adam(param_groups(model, args.lr, args.place_lr), lr=args.lr)
     # an exponential moving average of the weights, when asked: what is validated and shipped
     ema = None
     if args.ema:
@@ -339,7 +358,10 @@ def _train(args: argparse.Namespace, world: World, device: torch.device) -> dict
     if args.resume and last.is_file():
         payload = read_checkpoint(last)
         model.load_state_dict(payload["state_dict"])
-        opt.load_state_dict(payload["optimizer"])
+        base_lrs = [group["base_lr"] for group in opt.param_groups]
+        opt.load_state_dict(payload["optimizer"])  # its groups may predate base_lr
+        for group, base_lr in zip(opt.param_groups, base_lrs, strict=True):
+            group["base_lr"] = base_lr
         generators = payload.get("generators") or [payload["generator"]]
         if len(generators) != world.size:
             raise ValueError(f"{last} was written by {len(generators)} rank(s); resume it with "
@@ -396,8 +418,9 @@ def _train(args: argparse.Namespace, world: World, device: torch.device) -> dict
                               hide_context=args.hide_context)
         x, y = x.to(device), y.to(device)
         local = None if local is None else local.to(device)
-        for group in opt.param_groups:  # cosine decay to a tenth over the step budget
-            group["lr"] = args.lr * (0.1 + 0.45 * (1 + math.cos(math.pi * step / args.steps)))
+        decay = 0.1 + 0.45 * (1 + math.cos(math.pi * step / args.steps))  # to a tenth
+        for group in opt.param_groups:  # cosine decay over the step budget
+            group["lr"] = group["base_lr"] * decay
         drop = None
         if args.drop_view_path:  # drawn only when asked, so older commands repeat exactly
             drop = (torch.rand(x.shape[0], generator=gen) < args.drop_view_path).to(device)
@@ -685,6 +708,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--drop-view-path", type=float, default=0.0, metavar="P",
                    help="--config context=both: train each sequence without the per-view path "
                    "with probability P, so that the place path must carry the memory; 0 = off")
+    p.add_argument("--place-lr", type=float, default=None, metavar="LR",
+                   help="--config context=both: learning rate of the place path (place_bridge, "
+                   "place_tower), on the same schedule as --lr (default: --lr)")
     p.add_argument("--late-weight", type=float, default=1.0, metavar="W",
                    help="multi-view models: the last view's loss weighs W times the first's, "
                    "linear in between (mean 1), so that the gradient favours what the memory adds "
@@ -705,6 +731,11 @@ def main(argv: list[str] | None = None) -> int:
     if args.drop_view_path and args.config.get("context") != "both":
         p.error("--drop-view-path needs --config context=both (a place path beside the "
                 "per-view one)")
+    if args.place_lr is not None:
+        if not (args.place_lr > 0 and math.isfinite(args.place_lr)):
+            p.error(f"--place-lr must be a finite number > 0, got {args.place_lr}")
+        if args.config.get("context") != "both":
+            p.error("--place-lr needs --config context=both (a place path to give the rate)")
     if not (1.0 <= args.late_weight <= 10.0):
         p.error(f"--late-weight must be in [1, 10], got {args.late_weight}")
     if args.late_weight != 1 and args.model == "single_view":

@@ -4,8 +4,8 @@ import math
 import pytest
 
 from completion import data
-from completion.model import load_model, read_checkpoint
-from completion.train import main
+from completion.model import build_model, default_config, load_model, read_checkpoint
+from completion.train import PLACE_PATH_PREFIXES, _overrides, main, param_groups
 
 TINY = "channels=2:4:8,embed_dim=16,n_heads=2,n_features=8,top_channels=2,token_channels=2"
 
@@ -344,7 +344,29 @@ def test_drop_view_path_trains_a_place_path_and_needs_one(shards, tmp_path, caps
     assert read_checkpoint(tmp_path / "w.pt")["config"]["context"] == "both"
     capsys.readouterr()
     for bad, says in ((["--drop-view-path", "0.5"], "needs --config context=both"),
-                      (["--drop-view-path", "1", "--config", "context=both"], "in [0, 1)")):
+                      (["--drop-view-path", "1", "--config", "context=both"], "in [0, 1)"),
+                      (["--place-lr", "1e-3"], "needs --config context=both"),
+                      (["--place-lr", "0", "--config", "context=both"], "finite number > 0")):
         with pytest.raises(SystemExit):
             main(["--model", "mvp", *bad, "--out", "x.pt"])
         assert says in capsys.readouterr().err
+
+
+def test_place_lr_gives_the_place_path_its_own_rate_and_resumes(shards, tmp_path):
+    model = build_model(default_config("mvp", **_overrides(TINY + ",context=both,place_dim=8")))
+    groups = param_groups(model, 1e-4, 1e-3)
+    place = {id(p) for n, p in model.named_parameters() if n.startswith(PLACE_PATH_PREFIXES)}
+    assert [g["base_lr"] for g in groups] == [1e-4, 1e-3]
+    assert {id(p) for p in groups[1]["params"]} == place and place
+    assert not place & {id(p) for p in groups[0]["params"]}
+    assert len(param_groups(model, 1e-4, None)) == 1
+    args = ["--model", "mvp", "--views", "2", "--train-dir", str(shards / "train"),
+            "--val-dir", str(shards / "val"), "--train-count", "0", "--val-count", "0",
+            "--steps", "2", "--val-every", "1", "--config", TINY + ",context=both,place_dim=8",
+            "--place-lr", "1e-3", "--out", str(tmp_path / "w.pt"), "--quiet",
+            "--run-dir", str(tmp_path / "run")]
+    assert main(args) == 0
+    groups = read_checkpoint(tmp_path / "run" / "last.pt")["optimizer"]["param_groups"]
+    assert [g["base_lr"] for g in groups] == [2e-3, 1e-3]  # --lr's default and --place-lr
+    args[args.index("--steps") + 1] = "3"
+    assert main([*args, "--resume"]) == 0
