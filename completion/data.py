@@ -7,7 +7,8 @@ Shard format (DESIGN §4): one compressed ``.npz`` per sequence, named
 - ``grid_to_camera`` (L, 4, 4) float64 and ``camera_to_world`` (L, 4, 4) float64,
 - ``depth`` (L, H, W) float32 and ``mask`` (L, H, W) int16, only with ``--keep-depth``,
 - ``meta``: a JSON string (condition, split, index, seed, object ids, intrinsics, object poses,
-  visible points per object per view, curtain positions).
+  the scale each object mesh was given before it was posed (``object_scale``; shards written
+  before it lack it: 1), visible points per object per view, curtain positions).
 
 Examples::
 

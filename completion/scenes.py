@@ -115,7 +115,7 @@ def _pan_cameras(rng: np.random.Generator, centre: np.ndarray, views: int) -> li
 def _pair(rng: np.random.Generator, a: trimesh.Trimesh, b: trimesh.Trimesh):
     """Two objects side by side, both inside a 0.3 m cube centred at the origin.
 
-    Returns the (possibly scaled-down) meshes and their rigid poses.
+    Returns the (possibly scaled-down) meshes, their rigid poses and the scale applied to both.
     """
     ra, rb = _random_rotation(rng), _random_rotation(rng)
     a_w, b_w = _placed(a, ra), _placed(b, rb)
@@ -136,11 +136,12 @@ def _pair(rng: np.random.Generator, a: trimesh.Trimesh, b: trimesh.Trimesh):
         q = p.copy()
         q[:3, 3] = (p[:3, 3] + shift) * scale
         poses.append(q)
-    return [a.copy().apply_scale(scale), b.copy().apply_scale(scale)], poses
+    return [a.copy().apply_scale(scale), b.copy().apply_scale(scale)], poses, scale
 
 
 def _slide(rng: np.random.Generator, a: trimesh.Trimesh, b: trimesh.Trimesh, views: int):
-    """The (possibly shrunk) sliding mesh b, the camera pose and per-view poses of a and b."""
+    """The (possibly shrunk) sliding mesh b, the camera pose, per-view poses of a and b, and
+    the scale applied to b."""
     ra, rb = _random_rotation(rng), _random_rotation(rng)
     size_a = float(np.linalg.norm(a.extents))
     size_b = float(np.linalg.norm(b.extents))
@@ -170,7 +171,7 @@ def _slide(rng: np.random.Generator, a: trimesh.Trimesh, b: trimesh.Trimesh, vie
         pb = rb.copy()
         pb[:3, 3] = forward * depth_gap + side * (x + offset)
         poses.append([ra, pb])
-    return b, camera, poses
+    return b, camera, poses, shrink
 
 
 def curtain_position(t: int, views: int, *, reveal: bool) -> int:
@@ -213,12 +214,14 @@ def make_sequence(
         mesh, chosen[k] = _load_or_redraw(object_id, ids, rng)
         meshes.append(mesh)
 
+    scales = [1.0] * n_objects  # what each loaded mesh was scaled by before it was posed
     if condition == "two_object_pan":
-        meshes, poses = _pair(rng, *meshes)
+        meshes, poses, scale = _pair(rng, *meshes)
+        scales = [scale, scale]
         object_poses = [poses] * views
         cameras = _pan_cameras(rng, np.zeros(3), views)
     elif condition == "slide_behind":
-        sliding, camera, object_poses = _slide(rng, *meshes, views)
+        sliding, camera, object_poses, scales[1] = _slide(rng, *meshes, views)
         meshes = [meshes[0], sliding]
         cameras = [camera] * views
     else:
@@ -246,6 +249,7 @@ def make_sequence(
         object_ids=chosen,
         intrinsics=r.intrinsics.as_dict(),
         object_to_world=[[p.tolist() for p in ps] for ps in object_poses],
+        object_scale=[float(x) for x in scales],
     )
     return seq
 

@@ -548,3 +548,25 @@ def test_timings_header_names_the_workers_in_plain_english():
                                  (3, True, "3 Ray actors")):
         text = markdown_timings({"timings_s": timings, "config": {"workers": workers, "ray": ray}})
         assert header in text.splitlines()[0]
+
+
+def test_truth_meshes_are_the_objects_the_targets_were_voxelized_from():
+    """The F-score's truth surface: each object scaled as its scene scaled it (two-object pan
+    shrinks a pair into a 0.3 m cube, slide behind shrinks the sliding object)."""
+    from completion import grid
+    from completion.scenes import make_sequence
+    from grasp.evaluate.runner import object_meshes_in_camera
+
+    scaled = set()
+    for condition in CONDITIONS:
+        for index in range(4):
+            seq = make_sequence(condition, "test", index, 0, views=2)
+            scaled |= {condition for s in seq.meta["object_scale"] if s < 1}
+            for view in range(len(seq)):
+                occ = np.zeros(GRID_SHAPE, bool)
+                for mesh in object_meshes_in_camera(seq, view):
+                    occ |= grid.voxelize_mesh(mesh.vertices, mesh.faces, seq.grid_to_camera[view])
+                target = seq.targets[view]
+                overlap = (occ & target).sum() / (occ | target).sum()
+                assert overlap > 0.98, (condition, index, view, overlap)
+    assert scaled == {"two_object_pan", "slide_behind"}  # the case is exercised
