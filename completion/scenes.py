@@ -310,6 +310,22 @@ def _observe(
     )
 
 
+def object_meshes_in_camera(seq: Sequence, view: int) -> list:
+    """The true object meshes posed in view ``view``'s camera frame, each scaled as the scene
+    scaled it (two-object pan fits a pair into a 0.3 m cube, slide behind shrinks the sliding
+    object; ``meta["object_scale"]``, 1 where absent)."""
+    to_camera = np.linalg.inv(seq.camera_to_world[view])
+    ids = seq.meta["object_ids"]
+    scales = seq.meta.get("object_scale", [1.0] * len(ids))
+    meshes = []
+    for object_id, pose, scale in zip(ids, seq.meta["object_to_world"][view], scales, strict=True):
+        mesh = load_object(object_id)
+        mesh.apply_scale(scale)
+        mesh.apply_transform(to_camera @ np.asarray(pose))
+        meshes.append(mesh)
+    return meshes
+
+
 def _camera_vertices(meshes, poses, camera) -> np.ndarray:
     inv = np.linalg.inv(camera)
     return np.concatenate(

@@ -554,8 +554,7 @@ def test_truth_meshes_are_the_objects_the_targets_were_voxelized_from():
     """The F-score's truth surface: each object scaled as its scene scaled it (two-object pan
     shrinks a pair into a 0.3 m cube, slide behind shrinks the sliding object)."""
     from completion import grid
-    from completion.scenes import make_sequence
-    from grasp.evaluate.runner import object_meshes_in_camera
+    from completion.scenes import make_sequence, object_meshes_in_camera
 
     scaled = set()
     for condition in CONDITIONS:

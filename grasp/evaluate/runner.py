@@ -16,8 +16,8 @@ import numpy as np
 
 from completion import grid as G
 from completion.bullet import quiet_fds
-from completion.objects import load_object, object_ids
-from completion.scenes import SINGLE_OBJECT_CONDITIONS, Sequence
+from completion.objects import object_ids
+from completion.scenes import SINGLE_OBJECT_CONDITIONS, Sequence, object_meshes_in_camera
 from grasp.evaluate.config import (
     DEFAULT_THRESHOLD,
     EVAL_SPLITS,
@@ -130,22 +130,6 @@ def registered_fusion(
 def key_seed(*parts: object) -> int:
     """A stable 32-bit seed from the job's identity (same seed → same samples and grasps)."""
     return zlib.crc32("/".join(map(str, parts)).encode())
-
-
-def object_meshes_in_camera(seq: Sequence, view: int) -> list:
-    """The true object meshes posed in view ``view``'s camera frame, each scaled as the scene
-    scaled it (two-object pan fits a pair into a 0.3 m cube, slide behind shrinks the sliding
-    object; ``meta["object_scale"]``, 1 where absent)."""
-    to_camera = np.linalg.inv(seq.camera_to_world[view])
-    ids = seq.meta["object_ids"]
-    scales = seq.meta.get("object_scale", [1.0] * len(ids))
-    meshes = []
-    for object_id, pose, scale in zip(ids, seq.meta["object_to_world"][view], scales, strict=True):
-        mesh = load_object(object_id)
-        mesh.apply_scale(scale)
-        mesh.apply_transform(to_camera @ np.asarray(pose))
-        meshes.append(mesh)
-    return meshes
 
 
 def truth_mesh_in_latest_camera(seq: Sequence):

@@ -1,0 +1,101 @@
+"""What a perfect memory would add on slide behind: each model's Jaccard beside the Jaccard of
+its prediction united with the sliding object's true voxels (the object the memory should keep
+once it is behind the other), and the share of those voxels its prediction holds (recall), on
+the sequences the evaluation draws.
+
+The difference is the memory's headroom: how much of the slide-behind score a model could still
+gain by remembering the hidden object exactly, with its own completion of everything else. Read
+it beside MVP minus Single-View: the share of the headroom a memory has taken.
+
+    python -m completion.headroom      # shipped single_view and mvp, test split, seed 0
+    python -m completion.headroom --models mvp,runs/w/mvp.pt --split val --count 5
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+
+import numpy as np
+import torch
+
+from completion import grid
+from completion.cli import integer_at_least
+from completion.model import load_model
+from completion.objects import SPLITS
+from completion.scenes import VIEWS, make_sequence, object_meshes_in_camera
+
+SLIDING = 1  # the sliding object's index in a slide-behind sequence (the front one is 0)
+
+
+def headroom(
+    models: dict[str, torch.nn.Module], *, split: str = "test", count: int = 10, seed: int = 0,
+    views: int = VIEWS,
+) -> dict:
+    """Per model: mean Jaccard per view (over ``count`` sequences) of its prediction at its own
+    threshold ("alone"), of that prediction united with the sliding object's voxels
+    ("with_sliding_truth"), and the share of the sliding object's voxels it predicts
+    ("sliding_recall"); and per view the sliding object's share of the target."""
+    rows = {name: {"alone": [], "with_sliding_truth": [], "sliding_recall": []} for name in models}
+    share = []
+    for index in range(count):
+        seq = make_sequence("slide_behind", split, index, seed, views=views)
+        x = torch.from_numpy(seq.inputs[None].astype(np.float32))
+        sliding = []
+        for v in range(len(seq)):
+            mesh = object_meshes_in_camera(seq, v)[SLIDING]
+            voxels = grid.voxelize_mesh(mesh.vertices, mesh.faces, seq.grid_to_camera[v])
+            sliding.append(voxels & seq.targets[v])
+        sliding = np.stack(sliding)
+        share.append(sliding.sum((1, 2, 3)) / seq.targets.sum((1, 2, 3)))
+        for name, model in models.items():
+            with torch.no_grad():
+                pred = torch.sigmoid(model(x))[0].numpy() >= getattr(model, "threshold", 0.5)
+            rows[name]["alone"].append(grid.jaccard(pred, seq.targets))
+            rows[name]["with_sliding_truth"].append(grid.jaccard(pred | sliding, seq.targets))
+            found = (pred & sliding).sum((1, 2, 3)) / np.maximum(sliding.sum((1, 2, 3)), 1)
+            rows[name]["sliding_recall"].append(found)
+    per_view = {
+        name: {k: np.mean(v, axis=0).round(4).tolist() for k, v in r.items()}
+        for name, r in rows.items()
+    }
+    return {"split": split, "count": count, "seed": seed, "per_view": per_view,
+            "sliding_share": np.mean(share, axis=0).round(4).tolist()}  # fmt: skip
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(
+        prog="python -m completion.headroom",
+        description="Slide behind: each model's Jaccard, and with the sliding object's true "
+        "voxels added to its prediction (what a perfect memory of the hidden object would add).",
+    )
+    p.add_argument("--models", default="single_view,mvp",
+                   help="comma-separated shipped names or checkpoint files")  # fmt: skip
+    p.add_argument("--split", choices=SPLITS, default="test")
+    p.add_argument("--count", type=integer_at_least(1), default=10, help="sequences")
+    p.add_argument("--seed", type=int, default=0, help="scene seed (the evaluation's: 0)")
+    args = p.parse_args(argv)
+    names = [n.strip() for n in args.models.split(",") if n.strip()]
+    if not names:
+        p.error("--models names no model")
+    try:
+        models = {n: load_model(n).eval() for n in names}
+    except FileNotFoundError as exc:
+        p.error(str(exc))
+    out = headroom(models, split=args.split, count=args.count, seed=args.seed)
+    print(f"slide behind, {args.split} split, {args.count} sequences, seed {args.seed}: "
+          "mean Jaccard over the views (last six views)")  # fmt: skip
+    print(f"{'model':>24}  {'alone':>15}  {'+ sliding truth':>15}  {'headroom':>8}  "
+          f"{'sliding recall':>15}")  # fmt: skip
+    for name, r in out["per_view"].items():
+        alone, full = np.array(r["alone"]), np.array(r["with_sliding_truth"])
+        found = np.array(r["sliding_recall"])
+        print(f"{name:>24}  {alone.mean():.3f} ({alone[-6:].mean():.3f})  "
+              f"{full.mean():.3f} ({full[-6:].mean():.3f})  {full.mean() - alone.mean():+.3f}  "
+              f"   {found.mean():.3f} ({found[-6:].mean():.3f})")
+    print(f"sliding object's share of the target: {np.mean(out['sliding_share']):.3f}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
