@@ -12,7 +12,8 @@ first (``--train-count`` per condition with seed ``--data-seed`` for training, `
 with seed 0 for validation). Loss: binary cross-entropy with logits and ``pos_weight``, plus
 ``--jaccard-weight`` × (1 − soft Jaccard) per view when asked (the evaluation's metric is the
 Jaccard of each view, which BCE weighs by object size instead), the views weighed alike or,
-with ``--late-weight``, more the later they come; Adam with
+with ``--late-weight``, more the later they come, and, with ``--focus-model``, each voxel by how
+wrong a Single-View model is on it (what only the memory can supply); Adam with
 a cosine decay over ``--steps`` (the budget: the same command repeats the same run);
 ``--minutes`` only caps the wall time. Each step draws ``--batch-size`` sequences (a window of
 ``--views`` consecutive views) and mirrors each in the camera's x and/or y axis. Every
@@ -255,6 +256,15 @@ def soft_jaccard_loss(
     return (per_view if weights is None else per_view * weights).mean()
 
 
+def focus_weights(focus_logits: torch.Tensor, target: torch.Tensor, weight: float) -> torch.Tensor:
+    """Per-voxel BCE weights 1 + ``weight`` × |target − p|, p the focus model's probability
+    (``--focus-model``, a Single-View model shown what the local tower sees): the voxels that the
+    current view alone gets wrong (a slider hidden behind the front object, a curtained part, the
+    back of a panned object) weigh up to 1 + ``weight``, the ones it gets right 1, so the gradient
+    goes to what only the memory can supply."""
+    return 1 + weight * (target - torch.sigmoid(focus_logits.float())).abs()
+
+
 def view_weights(views: int, late: float) -> torch.Tensor:
     """(views,) loss weights rising linearly from the first view to the last, ``late`` times the
     first's, normalised to mean 1 (``--late-weight``; 1 = every view alike). In a pan the views
@@ -383,6 +393,13 @@ def _train(args: argparse.Namespace, world: World, device: torch.device) -> dict
     weights = None
     if args.late_weight != 1:
         weights = view_weights(args.views, args.late_weight).to(device)
+    focus = None  # the Single-View model whose errors weigh the voxels (--focus-model)
+    if args.focus_model:
+        focus = load_checkpoint(args.focus_model, map_location=device)
+        if focus.config.kind != "single_view":
+            raise ValueError(f"--focus-model {args.focus_model} is a {focus.config.kind} model; "
+                             "expected a single_view checkpoint")
+        focus.requires_grad_(False)
     tic = time.perf_counter()
     budget_s = args.minutes * 60 if args.minutes else float("inf")
     autocast = torch.autocast(device.type, dtype=torch.bfloat16, enabled=args.precision == "bf16")
@@ -426,12 +443,17 @@ def _train(args: argparse.Namespace, world: World, device: torch.device) -> dict
             drop = (torch.rand(x.shape[0], generator=gen) < args.drop_view_path).to(device)
         with autocast:
             logits = net(x, local=local, drop_view_path=drop)
-        if weights is None:
+        voxel = None
+        if focus is not None:
+            with torch.no_grad(), torch.autocast(device.type, dtype=torch.bfloat16):
+                voxel = focus_weights(focus(x if local is None else local), y, args.focus_weight)
+        if weights is None and voxel is None:
             loss = F.binary_cross_entropy_with_logits(logits.float(), y, pos_weight=pos_weight)
-        else:  # per-view mean, weighed along the sequence
-            loss = (F.binary_cross_entropy_with_logits(logits.float(), y, pos_weight=pos_weight,
-                                                       reduction="none").mean((-3, -2, -1))
-                    * weights).mean()  # fmt: skip
+        else:  # per-voxel weights, then the per-view mean weighed along the sequence
+            loss = F.binary_cross_entropy_with_logits(logits.float(), y, pos_weight=pos_weight,
+                                                      weight=voxel, reduction="none")
+            loss = loss.mean((-3, -2, -1))
+            loss = (loss if weights is None else loss * weights).mean()
         if args.jaccard_weight:
             loss = loss + args.jaccard_weight * soft_jaccard_loss(logits.float(), y, weights)
         opt.zero_grad(set_to_none=True)
@@ -715,6 +737,12 @@ def main(argv: list[str] | None = None) -> int:
                    help="multi-view models: the last view's loss weighs W times the first's, "
                    "linear in between (mean 1), so that the gradient favours what the memory adds "
                    "as views accumulate; 1 = every view alike")
+    p.add_argument("--focus-model", type=Path, default=None, metavar="CKPT",
+                   help="multi-view models: a single_view checkpoint whose errors on each view "
+                   "weigh the BCE per voxel (1 + --focus-weight × |target − its probability|), so "
+                   "the gradient goes to what the current view alone cannot give")
+    p.add_argument("--focus-weight", type=float, default=2.0, metavar="W",
+                   help="with --focus-model: the most a voxel's BCE weight rises above 1")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     args = p.parse_args(argv)
     for name in ("views", "steps", "val_every", "batch_size", "threads"):
@@ -740,6 +768,14 @@ def main(argv: list[str] | None = None) -> int:
         p.error(f"--late-weight must be in [1, 10], got {args.late_weight}")
     if args.late_weight != 1 and args.model == "single_view":
         p.error("--late-weight needs a multi-view model (single_view has no memory)")
+    if args.focus_model:
+        if args.model == "single_view":
+            p.error("--focus-model needs a multi-view model (a Single-View model has no memory "
+                    "to supply what its own view misses)")
+        if not args.focus_model.is_file():
+            p.error(f"--focus-model: no such checkpoint {args.focus_model}")
+    if not (args.focus_weight > 0 and math.isfinite(args.focus_weight)):
+        p.error(f"--focus-weight must be a finite number > 0, got {args.focus_weight}")
     if not (args.jaccard_weight >= 0 and math.isfinite(args.jaccard_weight)):
         p.error(f"--jaccard-weight must be a finite number ≥ 0, got {args.jaccard_weight}")
     if not 0.0 <= args.ema < 1.0:

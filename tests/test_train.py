@@ -4,7 +4,13 @@ import math
 import pytest
 
 from completion import data
-from completion.model import build_model, default_config, load_model, read_checkpoint
+from completion.model import (
+    build_model,
+    default_config,
+    load_model,
+    read_checkpoint,
+    save_checkpoint,
+)
 from completion.train import PLACE_PATH_PREFIXES, _overrides, main, param_groups
 
 TINY = "channels=2:4:8,embed_dim=16,n_heads=2,n_features=8,top_channels=2,token_channels=2"
@@ -370,3 +376,38 @@ def test_place_lr_gives_the_place_path_its_own_rate_and_resumes(shards, tmp_path
     assert [g["base_lr"] for g in groups] == [2e-3, 1e-3]  # --lr's default and --place-lr
     args[args.index("--steps") + 1] = "3"
     assert main([*args, "--resume"]) == 0
+
+
+def test_focus_weights_weigh_what_the_single_view_model_misses():
+    """A voxel the focus model gets right weighs 1, one it misses up to 1 + W, a guess between."""
+    import torch
+
+    from completion.train import focus_weights
+
+    target = torch.tensor([1.0, 1.0, 0.0, 0.0, 1.0])
+    logits = torch.tensor([20.0, -20.0, -20.0, 20.0, 0.0])  # right, missed, right, false, unsure
+    w = focus_weights(logits, target, 3.0)
+    assert torch.allclose(w, torch.tensor([1.0, 4.0, 1.0, 4.0, 2.5]), atol=1e-5)
+
+
+def test_focus_model_trains_and_rejects_bad_input(shards, tmp_path, capsys):
+    focus = tmp_path / "sv.pt"
+    save_checkpoint(build_model(default_config("single_view", **_overrides(TINY))), focus)
+    args = ["--model", "mvp", "--views", "3", "--train-dir", str(shards / "train"),
+            "--val-dir", str(shards / "val"), "--train-count", "0", "--val-count", "0",
+            "--steps", "2", "--val-every", "2", "--config", TINY, "--late-weight", "2",
+            "--focus-model", str(focus), "--focus-weight", "3", "--out", str(tmp_path / "f.pt"),
+            "--quiet"]
+    assert main(args) == 0
+    summary = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert summary["steps"] == 2 and math.isfinite(summary["history"][-1]["loss"])
+    for bad, says in ((["--model", "single_view", "--focus-model", str(focus)], "multi-view"),
+                      (["--model", "mvp", "--focus-model", str(tmp_path / "no.pt")], "no such"),
+                      (["--model", "mvp", "--focus-weight", "0"], "finite number > 0")):
+        with pytest.raises(SystemExit):
+            main([*bad, "--out", "x.pt"])
+        assert says in capsys.readouterr().err
+    mvp_as_focus = [*args[:args.index("--focus-model") + 1], str(tmp_path / "f.pt"),
+                    *args[args.index("--focus-model") + 2:]]
+    with pytest.raises(ValueError, match="expected a single_view checkpoint"):
+        main(mvp_as_focus)
