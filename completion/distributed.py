@@ -52,8 +52,14 @@ class World:
         dist.all_reduce(t, op=dist.ReduceOp.MIN)
         return bool(t.item())
 
-    def close(self) -> None:
+    def close(self, *, wait: bool = True) -> None:
+        """Leave the process group; with ``wait`` (a normal finish) all ranks leave together,
+        since a rank that tears gloo down while another still talks to it can abort at exit
+        ("terminate called without an active exception"). A failing rank must not wait: the
+        others may be inside a collective it will never join."""
         if self.distributed and dist.is_initialized():
+            if wait:
+                dist.barrier()
             dist.destroy_process_group()
 
 

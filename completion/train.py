@@ -299,9 +299,12 @@ def train(args: argparse.Namespace) -> dict:
     """One training run; under torchrun each rank trains on its own part of the data."""
     world, device = setup(args.device)
     try:
-        return _train(args, world, device)
-    finally:
-        world.close()
+        summary = _train(args, world, device)
+    except BaseException:
+        world.close(wait=False)
+        raise
+    world.close()
+    return summary
 
 
 def _train(args: argparse.Namespace, world: World, device: torch.device) -> dict:
