@@ -7,6 +7,12 @@ The difference is the memory's headroom: how much of the slide-behind score a mo
 gain by remembering the hidden object exactly, with its own completion of everything else. Read
 it beside MVP minus Single-View: the share of the headroom a memory has taken.
 
+A memory can only carry what the model made of the slider while it saw it, so a third column,
+"own slider moved", is the ideal transport of the model's own completion: its predicted voxels
+within two voxels of the slider's truth in the first view, moved by the slider's true translation
+into each view and united with the prediction there. It bounds what a memory of that model's
+completion quality can reach; beyond it the completion itself must get better.
+
     python -m completion.headroom      # shipped single_view and mvp, test split, seed 0
     python -m completion.headroom --models mvp,runs/w/mvp.pt --split val --count 5
 """
@@ -18,6 +24,7 @@ import sys
 
 import numpy as np
 import torch
+from scipy import ndimage
 
 from completion import grid
 from completion.cli import integer_at_least
@@ -26,6 +33,24 @@ from completion.objects import SPLITS
 from completion.scenes import VIEWS, make_sequence, object_meshes_in_camera
 
 SLIDING = 1  # the sliding object's index in a slide-behind sequence (the front one is 0)
+NEAR = 2  # voxels: how far from the slider's truth a predicted voxel still counts as its completion
+
+
+def slider_shift(seq, view: int) -> np.ndarray:
+    """(3,) int: the voxels by which the sliding object moved between view 0 and ``view``, each
+    in its own view's grid (the grids share a pitch and axes: the camera of slide behind stands
+    still)."""
+    where = []
+    for v in (0, view):
+        centre = np.asarray(seq.meta["object_to_world"][v][SLIDING], dtype=np.float64)[:, 3]
+        in_camera = np.linalg.solve(seq.camera_to_world[v], centre)[:3]
+        where.append(grid.points_to_indices(in_camera[None], seq.grid_to_camera[v], rounded=False))
+    return np.round(where[1][0] - where[0][0]).astype(int)
+
+
+def moved(voxels: np.ndarray, shift: np.ndarray) -> np.ndarray:
+    """Boolean grid ``voxels`` translated by ``shift`` voxels; what leaves the grid is dropped."""
+    return ndimage.shift(voxels.astype(np.uint8), shift, order=0, mode="constant", cval=0) > 0
 
 
 def headroom(
@@ -34,9 +59,11 @@ def headroom(
 ) -> dict:
     """Per model: mean Jaccard per view (over ``count`` sequences) of its prediction at its own
     threshold ("alone"), of that prediction united with the sliding object's voxels
-    ("with_sliding_truth"), and the share of the sliding object's voxels it predicts
+    ("with_sliding_truth") or with its own first-view completion of the slider moved where the
+    slider is ("own_slider_moved"), and the share of the sliding object's voxels it predicts
     ("sliding_recall"); and per view the sliding object's share of the target."""
-    rows = {name: {"alone": [], "with_sliding_truth": [], "sliding_recall": []} for name in models}
+    keys = ("alone", "with_sliding_truth", "own_slider_moved", "sliding_recall")
+    rows = {name: {k: [] for k in keys} for name in models}
     share = []
     for index in range(count):
         seq = make_sequence("slide_behind", split, index, seed, views=views)
@@ -48,11 +75,16 @@ def headroom(
             sliding.append(voxels & seq.targets[v])
         sliding = np.stack(sliding)
         share.append(sliding.sum((1, 2, 3)) / seq.targets.sum((1, 2, 3)))
+        near_first = ndimage.binary_dilation(sliding[0], iterations=NEAR)
+        shifts = [slider_shift(seq, v) for v in range(len(seq))]
         for name, model in models.items():
             with torch.no_grad():
                 pred = torch.sigmoid(model(x))[0].numpy() >= getattr(model, "threshold", 0.5)
             rows[name]["alone"].append(grid.jaccard(pred, seq.targets))
             rows[name]["with_sliding_truth"].append(grid.jaccard(pred | sliding, seq.targets))
+            own = pred[0] & near_first  # the model's completion of the slider in the first view
+            carried = np.stack([pred[v] | moved(own, shifts[v]) for v in range(len(seq))])
+            rows[name]["own_slider_moved"].append(grid.jaccard(carried, seq.targets))
             found = (pred & sliding).sum((1, 2, 3)) / np.maximum(sliding.sum((1, 2, 3)), 1)
             rows[name]["sliding_recall"].append(found)
     per_view = {
@@ -86,12 +118,13 @@ def main(argv: list[str] | None = None) -> int:
     print(f"slide behind, {args.split} split, {args.count} sequences, seed {args.seed}: "
           "mean Jaccard over the views (last six views)")  # fmt: skip
     print(f"{'model':>24}  {'alone':>15}  {'+ sliding truth':>15}  {'headroom':>8}  "
-          f"{'sliding recall':>15}")  # fmt: skip
+          f"{'+ own slider moved':>18}  {'sliding recall':>15}")  # fmt: skip
     for name, r in out["per_view"].items():
         alone, full = np.array(r["alone"]), np.array(r["with_sliding_truth"])
-        found = np.array(r["sliding_recall"])
+        own, found = np.array(r["own_slider_moved"]), np.array(r["sliding_recall"])
         print(f"{name:>24}  {alone.mean():.3f} ({alone[-6:].mean():.3f})  "
               f"{full.mean():.3f} ({full[-6:].mean():.3f})  {full.mean() - alone.mean():+.3f}  "
+              f"   {own.mean():.3f} ({own[-6:].mean():.3f})  "
               f"   {found.mean():.3f} ({found[-6:].mean():.3f})")
     print(f"sliding object's share of the target: {np.mean(out['sliding_share']):.3f}")
     return 0

@@ -28,10 +28,39 @@ def test_headroom_is_what_the_sliding_object_adds():
     assert empty["sliding_recall"] == [0.0] * 3 and full["sliding_recall"] == [1.0] * 3
 
 
+class _Surface(torch.nn.Module):
+    """Predicts exactly the observed surface (the input): no completion, no memory."""
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return 20.0 * x - 10.0
+
+
+def test_own_slider_moved_carries_the_first_views_completion_to_where_the_slider_is():
+    from completion.headroom import moved, slider_shift
+    from completion.scenes import make_sequence
+
+    seq = make_sequence("slide_behind", "test", 0, 0, views=6)
+    shifts = [slider_shift(seq, v) for v in range(6)]
+    assert shifts[0].tolist() == [0, 0, 0]
+    assert any(s[0] != 0 for s in shifts[1:]) and all(s[1] == 0 for s in shifts)  # along x only
+    box = np.zeros((40, 40, 40), dtype=bool)
+    box[1:3, 5:7, 9] = True
+    assert np.array_equal(moved(box, np.array([3, 0, -1])), np.roll(box, (3, -1), axis=(0, 2)))
+    assert moved(box, np.array([-5, 0, 0])).sum() == 0  # off the grid
+
+    out = headroom({"surface": _Surface(), "empty": _Constant(-1)}, split="test", count=2, views=6)
+    surface, empty = out["per_view"]["surface"], out["per_view"]["empty"]
+    assert surface["own_slider_moved"][0] == pytest.approx(surface["alone"][0])  # nothing moved yet
+    # the slider's seen surface carried along lands on the slider: the score only rises
+    assert all(o >= a for o, a in zip(surface["own_slider_moved"], surface["alone"], strict=True))
+    assert np.mean(surface["own_slider_moved"]) > np.mean(surface["alone"])
+    assert empty["own_slider_moved"] == empty["alone"] == [0.0] * 6  # nothing to carry
+
+
 def test_headroom_cli_prints_the_table_and_rejects_a_missing_model(capsys, tmp_path):
     with pytest.raises(SystemExit):
         main(["--models", str(tmp_path / "missing.pt")])
     assert "does not exist" in capsys.readouterr().err
     assert main(["--models", "single_view", "--count", "1"]) == 0
     out = capsys.readouterr().out
-    assert "single_view" in out and "sliding object's share" in out
+    assert "single_view" in out and "sliding object's share" in out and "own slider moved" in out
