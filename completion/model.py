@@ -115,6 +115,10 @@ class ModelConfig:
     place_window: with tokens per place, attention reads only the places within this many places
     (Chebyshev distance) of its own, in this and earlier views (0: every place). Local reads make
     the Performer's memory one (S, z) per place (P·H·M·E per layer, still independent of L).
+    place_window_x: with place_window, how far a place reads along the grid's i axis (camera x,
+    the image's horizontal) instead (0: place_window), so that a shape can travel across the
+    image (an object sliding sideways, a pan) while the read stays local in height and depth.
+    Changes no tensor: a checkpoint of the same place path loads.
     place_features: M of the place path in "both" mode (0: n_features).
     seed: weight initialisation and the initial FAVOR+ draw.
     """
@@ -139,6 +143,7 @@ class ModelConfig:
     context: Context = "view"
     place_dim: int = 64
     place_window: int = 0
+    place_window_x: int = 0
     place_features: int = 0
     seed: int = 0
 
@@ -178,6 +183,10 @@ class ModelConfig:
         if self.place_window < 0 or self.place_features < 0:
             raise ValueError("place_window and place_features must be >= 0, got "
                              f"{self.place_window} and {self.place_features}")
+        if self.place_window_x < 0 or (self.place_window_x and not self.place_window):
+            raise ValueError("place_window_x needs place_window >= 1 and must be >= 0, got "
+                             f"place_window {self.place_window}, place_window_x "
+                             f"{self.place_window_x}")
         if self.place_window and self.context == "view":
             raise ValueError("place_window needs tokens per place (context 'place' or 'both')")
         if self.context == "both" and self.place_dim % (2 * self.n_heads):

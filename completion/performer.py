@@ -300,27 +300,42 @@ class FeatureMap(nn.Module):
         return f"dim={self.dim}, kernel={self.kernel!r}, n_features={self.n_features}"
 
 
-def neighbourhood_sum(x: Tensor, side: int, window: int) -> Tensor:
-    """Sum over each place's (2w+1)³ neighbourhood (zero outside the volume), w = ``window``.
+Window = int | tuple[int, int, int]
+"""How far a place reads, in places: one reach for all three axes, or (i, j, k) reaches."""
+
+
+def _reach(window: Window) -> tuple[int, int, int]:
+    reach = (window,) * 3 if isinstance(window, int) else tuple(int(w) for w in window)
+    if len(reach) != 3 or min(reach) < 0:
+        raise ValueError(f"window must be a reach >= 0 or three of them, got {window!r}")
+    return reach  # type: ignore[return-value]
+
+
+def neighbourhood_sum(x: Tensor, side: int, window: Window) -> Tensor:
+    """Sum over each place's (2wi+1)×(2wj+1)×(2wk+1) neighbourhood (zero outside the volume),
+    (wi, wj, wk) = ``window`` (an int is the same reach along all three axes).
 
     x: (..., P, F) with P = side³ places in (i, j, k) order -> (..., P, F).
     """
     lead, features = x.shape[:-2], x.shape[-1]
     if x.shape[-2] != side**3:
         raise ValueError(f"expected {side**3} places (side {side}), got {x.shape[-2]}")
+    reach = tuple(min(w, side - 1) for w in _reach(window))  # a reach past the volume reads all
     cube = x.reshape(-1, side, side, side, features).permute(0, 4, 1, 2, 3)  # (N, F, s, s, s)
-    k = 2 * window + 1
-    cube = nn.functional.avg_pool3d(cube, k, stride=1, padding=window) * k**3
+    kernel = tuple(2 * w + 1 for w in reach)
+    # zeros padded first: avg_pool3d refuses a kernel wider than its unpadded input
+    cube = nn.functional.pad(cube, tuple(w for w in reversed(reach) for _ in (0, 1)))
+    cube = nn.functional.avg_pool3d(cube, kernel, stride=1) * math.prod(kernel)
     return cube.permute(0, 2, 3, 4, 1).reshape(*lead, side**3, features)
 
 
 def local_causal_linear_attention(
-    phi_q: Tensor, phi_k: Tensor, v: Tensor, *, side: int, window: int
+    phi_q: Tensor, phi_k: Tensor, v: Tensor, *, side: int, window: Window
 ) -> Tensor:
     """Causal over views, local in space: place p of view i reads every place within ``window``
-    (Chebyshev distance, in places) of p in views j ≤ i. phi_q, phi_k: (..., L, P, M); v:
-    (..., L, P, F) -> (..., L, P, F) float32. The memory is one (S, z) per place: its size
-    depends on P, never on L.
+    (Chebyshev distance, in places; per axis with three reaches) of p in views j ≤ i.
+    phi_q, phi_k: (..., L, P, M); v: (..., L, P, F) -> (..., L, P, F) float32. The memory is
+    one (S, z) per place: its size depends on P, never on L.
     """
     phi_q, phi_k, v = phi_q.to(STATE_DTYPE), phi_k.to(STATE_DTYPE), v.to(STATE_DTYPE)
     m, f = phi_k.shape[-1], v.shape[-1]
@@ -333,7 +348,7 @@ def local_causal_linear_attention(
 
 
 def local_linear_attention_step(
-    phi_q: Tensor, phi_k: Tensor, v: Tensor, s: Tensor, z: Tensor, *, side: int, window: int
+    phi_q: Tensor, phi_k: Tensor, v: Tensor, s: Tensor, z: Tensor, *, side: int, window: Window
 ) -> tuple[Tensor, Tensor, Tensor]:
     """One view of :func:`local_causal_linear_attention`. phi_q, phi_k: (..., P, M); v:
     (..., P, F); s: (..., P, M, F); z: (..., P, M) -> (out (..., P, F), new s, new z)."""
@@ -347,8 +362,10 @@ def local_linear_attention_step(
     return _safe_divide(num, den), s, z
 
 
-def place_neighbours(side: int, window: int, *, device: torch.device | None = None) -> Tensor:
-    """(P, P) bool: places within ``window`` of each other (Chebyshev distance, in places)."""
+def place_neighbours(side: int, window: Window, *, device: torch.device | None = None) -> Tensor:
+    """(P, P) bool: places within ``window`` of each other (Chebyshev distance, in places; with
+    three reaches, within each along its axis)."""
     idx = torch.arange(side, device=device)
     ijk = torch.stack(torch.meshgrid(idx, idx, idx, indexing="ij"), dim=-1).reshape(-1, 3)
-    return (ijk.unsqueeze(1) - ijk.unsqueeze(0)).abs().amax(dim=-1) <= window
+    reach = torch.tensor(_reach(window), device=device)
+    return ((ijk.unsqueeze(1) - ijk.unsqueeze(0)).abs() <= reach).all(dim=-1)

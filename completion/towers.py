@@ -102,7 +102,10 @@ class CausalSelfAttention(nn.Module):
         self.value_rotation = config.value_rotation
         # with a token per place: attend only within place_window places (0: everywhere)
         self.side = config.grid_size // 2 ** len(config.channels)
-        self.window = config.place_window if config.context == "place" else 0
+        self.window: int | tuple[int, int, int] = 0
+        if config.context == "place" and config.place_window:
+            w = config.place_window
+            self.window = (config.place_window_x, w, w) if config.place_window_x else w
         # exact attention's (P, P) mask of the places each place may read; built once
         near = place_neighbours(self.side, self.window) if self.window else None
         self.register_buffer("near", near, persistent=False)

@@ -49,6 +49,7 @@ VARIANTS = [
     ("lstm", "softmax", 0, "both"),
     ("mvp", "softmax", 30, "both-local"),
     ("mvt", "softmax", 30, "place-local"),
+    ("mvp", "softmax", 30, "both-row"),
 ]
 IDS = [
     (f"{kind}-{kernel}" if kind == "mvp" else kind) + (f"-rot{rot}" if rot else "")
@@ -110,9 +111,11 @@ def stream(model: CompletionModel, seq: torch.Tensor) -> torch.Tensor:
 @pytest.fixture(params=VARIANTS, ids=IDS)
 def tiny_model(request: pytest.FixtureRequest) -> CompletionModel:
     kind, kernel, rotation, context = request.param
-    context, _, local = context.partition("-")  # "-local": attention within one place
+    # "-local": attention within one place; "-row": and along the whole i row (place_window_x)
+    context, _, local = context.partition("-")
     return scrambled(tiny_config(kind, kernel, value_rotation=rotation, context=context,
-                                 place_window=int(bool(local))))
+                                 place_window=int(bool(local)),
+                                 place_window_x=4 if local == "row" else 0))  # fmt: skip
 
 
 # ---- the streaming contract -----------------------------------------------------------------
@@ -262,6 +265,25 @@ def test_attention_over_places_reads_other_places_of_past_views_and_lstm_does_no
 
 
 @torch.no_grad()
+def test_place_window_x_reads_far_along_the_image_x_axis_only() -> None:
+    """place_window_x: a shape travels across the image (i) while the read stays local in j, k."""
+    x = torch.randn(1, 3, 125, 16, generator=torch.Generator().manual_seed(1))
+    changed = x.clone()
+    changed[0, 0, 0] = -3 * x[0, 0, 0]  # view 0, place (0, 0, 0)
+    for kind in ("mvp", "mvt"):
+        plain = scrambled(tiny_config(kind, context="place", place_window=1)).tower
+        wide = scrambled(tiny_config(kind, context="place", place_window=1, place_window_x=4)).tower
+        wide.load_state_dict(plain.state_dict())  # the reach changes no tensor
+        for tower, reads_far in ((plain, False), (wide, True)):
+            y, y2 = tower(x), tower(changed)
+            # place 106 = (4, 1, 1): four places along i, one along j and k (two layers of
+            # reach one get two places along i)
+            assert ((y2[0, 2, 106] - y[0, 2, 106]).abs().max() > 1e-4) == reads_far, kind
+            # place 15 = (0, 3, 0): three places along j is out of reach of two layers either way
+            assert (y2[0, 2, 15] - y[0, 2, 15]).abs().max() < 1e-6, kind
+
+
+@torch.no_grad()
 def test_state_bytes_round_trip_gives_identical_outputs(tiny_model: CompletionModel) -> None:
     seq = random_views(2, 5)
     state = tiny_model.init_state(2)
@@ -386,6 +408,8 @@ def test_config_round_trips_through_a_plain_dict() -> None:
         ({"context": "both", "place_dim": 6}, "place_dim 6 must be divisible"),
         ({"place_window": 1}, "place_window needs tokens per place"),
         ({"context": "place", "place_window": -1}, "must be >= 0"),
+        ({"context": "place", "place_window_x": 2}, "place_window_x needs place_window >= 1"),
+        ({"context": "place", "place_window": 1, "place_window_x": -1}, "place_window_x needs"),
     ],
 )
 def test_bad_config_raises(overrides: dict[str, object], message: str) -> None:

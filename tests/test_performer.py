@@ -220,7 +220,10 @@ def test_block_and_local_attention_match_their_definitions_and_their_steps() -> 
     v = torch.randn(2, n, places, f, generator=g)
     near = place_neighbours(side, 1)
     assert near.sum(1).tolist()[13] == 27 and near.sum(1).tolist()[0] == 8  # centre, corner
-    for window, mask in ((0, torch.ones(places, places, dtype=torch.bool)), (1, near)):
+    row = place_neighbours(side, (2, 0, 1))  # the whole i row, one place along k
+    assert row.sum(1).tolist()[13] == 3 * 1 * 3 and bool(row[0, 2 * 9 + 1]) and not row[0, 3]
+    for window, mask in ((0, torch.ones(places, places, dtype=torch.bool)), (1, near),
+                         ((2, 0, 1), row)):  # fmt: skip
         expected = torch.zeros(2, n, places, f)
         for i in range(n):
             w = torch.einsum("bpm,bjqm->bpjq", phi_q[:, i], phi_k[:, : i + 1])  # (B, P, j, P')
@@ -229,7 +232,7 @@ def test_block_and_local_attention_match_their_definitions_and_their_steps() -> 
                 ..., None
             ]
         if window:
-            got = local_causal_linear_attention(phi_q, phi_k, v, side=side, window=1)
+            got = local_causal_linear_attention(phi_q, phi_k, v, side=side, window=window)
             s, z = torch.zeros(2, places, m, f), torch.zeros(2, places, m)
         else:
             got = block_causal_linear_attention(phi_q, phi_k, v)
@@ -238,7 +241,7 @@ def test_block_and_local_attention_match_their_definitions_and_their_steps() -> 
         for i in range(n):
             if window:
                 out, s, z = local_linear_attention_step(
-                    phi_q[:, i], phi_k[:, i], v[:, i], s, z, side=side, window=1
+                    phi_q[:, i], phi_k[:, i], v[:, i], s, z, side=side, window=window
                 )
             else:
                 out, s, z = block_linear_attention_step(phi_q[:, i], phi_k[:, i], v[:, i], s, z)
