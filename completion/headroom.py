@@ -12,9 +12,13 @@ A memory can only carry what the model made of the slider while it saw it, so a 
 within two voxels of the slider's truth in the first view, moved by the slider's true translation
 into each view and united with the prediction there. It bounds what a memory of that model's
 completion quality can reach; beyond it the completion itself must get better.
+``--shift-quantum Q`` rounds that translation to a multiple of Q voxels (a memory that places the
+slider only to within Q/2 voxels; Q = 8 is a whole place of the 5³ bottleneck): how precisely a
+memory must put the shape down for it to pay.
 
     python -m completion.headroom      # shipped single_view and mvp, test split, seed 0
     python -m completion.headroom --models mvp,runs/w/mvp.pt --split val --count 5
+    python -m completion.headroom --models mvp --shift-quantum 4   # transport to within 2 voxels
 """
 
 from __future__ import annotations
@@ -48,6 +52,11 @@ def slider_shift(seq, view: int) -> np.ndarray:
     return np.round(where[1][0] - where[0][0]).astype(int)
 
 
+def quantised(shift: np.ndarray, quantum: int) -> np.ndarray:
+    """``shift`` rounded to the nearest multiple of ``quantum`` voxels, per axis."""
+    return (np.round(np.asarray(shift) / quantum) * quantum).astype(int)
+
+
 def moved(voxels: np.ndarray, shift: np.ndarray) -> np.ndarray:
     """Boolean grid ``voxels`` translated by ``shift`` voxels; what leaves the grid is dropped."""
     return ndimage.shift(voxels.astype(np.uint8), shift, order=0, mode="constant", cval=0) > 0
@@ -55,12 +64,13 @@ def moved(voxels: np.ndarray, shift: np.ndarray) -> np.ndarray:
 
 def headroom(
     models: dict[str, torch.nn.Module], *, split: str = "test", count: int = 10, seed: int = 0,
-    views: int = VIEWS,
+    views: int = VIEWS, shift_quantum: int = 1,
 ) -> dict:
     """Per model: mean Jaccard per view (over ``count`` sequences) of its prediction at its own
     threshold ("alone"), of that prediction united with the sliding object's voxels
     ("with_sliding_truth") or with its own first-view completion of the slider moved where the
-    slider is ("own_slider_moved"), and the share of the sliding object's voxels it predicts
+    slider is ("own_slider_moved"; the translation rounded to a multiple of ``shift_quantum``
+    voxels), and the share of the sliding object's voxels it predicts
     ("sliding_recall"); and per view the sliding object's share of the target."""
     keys = ("alone", "with_sliding_truth", "own_slider_moved", "sliding_recall")
     rows = {name: {k: [] for k in keys} for name in models}
@@ -76,7 +86,7 @@ def headroom(
         sliding = np.stack(sliding)
         share.append(sliding.sum((1, 2, 3)) / seq.targets.sum((1, 2, 3)))
         near_first = ndimage.binary_dilation(sliding[0], iterations=NEAR)
-        shifts = [slider_shift(seq, v) for v in range(len(seq))]
+        shifts = [quantised(slider_shift(seq, v), shift_quantum) for v in range(len(seq))]
         for name, model in models.items():
             with torch.no_grad():
                 pred = torch.sigmoid(model(x))[0].numpy() >= getattr(model, "threshold", 0.5)
@@ -91,7 +101,8 @@ def headroom(
         name: {k: np.mean(v, axis=0).round(4).tolist() for k, v in r.items()}
         for name, r in rows.items()
     }
-    return {"split": split, "count": count, "seed": seed, "per_view": per_view,
+    return {"split": split, "count": count, "seed": seed, "shift_quantum": shift_quantum,
+            "per_view": per_view,
             "sliding_share": np.mean(share, axis=0).round(4).tolist()}  # fmt: skip
 
 
@@ -106,6 +117,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--split", choices=SPLITS, default="test")
     p.add_argument("--count", type=integer_at_least(1), default=10, help="sequences")
     p.add_argument("--seed", type=int, default=0, help="scene seed (the evaluation's: 0)")
+    p.add_argument("--shift-quantum", type=integer_at_least(1), default=1, metavar="Q",
+                   help="round the slider's translation in '+ own slider moved' to a multiple "
+                   "of Q voxels (default 1: exact)")  # fmt: skip
     args = p.parse_args(argv)
     names = [n.strip() for n in args.models.split(",") if n.strip()]
     if not names:
@@ -114,9 +128,11 @@ def main(argv: list[str] | None = None) -> int:
         models = {n: load_model(n).eval() for n in names}
     except FileNotFoundError as exc:
         p.error(str(exc))
-    out = headroom(models, split=args.split, count=args.count, seed=args.seed)
-    print(f"slide behind, {args.split} split, {args.count} sequences, seed {args.seed}: "
-          "mean Jaccard over the views (last six views)")  # fmt: skip
+    out = headroom(models, split=args.split, count=args.count, seed=args.seed,
+                   shift_quantum=args.shift_quantum)
+    print(f"slide behind, {args.split} split, {args.count} sequences, seed {args.seed}, slider "
+          f"moved in steps of {args.shift_quantum} voxel(s): mean Jaccard over the views "
+          "(last six views)")  # fmt: skip
     print(f"{'model':>24}  {'alone':>15}  {'+ sliding truth':>15}  {'headroom':>8}  "
           f"{'+ own slider moved':>18}  {'sliding recall':>15}")  # fmt: skip
     for name, r in out["per_view"].items():

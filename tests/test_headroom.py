@@ -64,3 +64,22 @@ def test_headroom_cli_prints_the_table_and_rejects_a_missing_model(capsys, tmp_p
     assert main(["--models", "single_view", "--count", "1"]) == 0
     out = capsys.readouterr().out
     assert "single_view" in out and "sliding object's share" in out and "own slider moved" in out
+
+
+def test_shift_quantum_rounds_the_slider_translation_and_rejects_zero(capsys):
+    from completion.headroom import quantised
+
+    assert quantised(np.array([-23, 0, 5]), 1).tolist() == [-23, 0, 5]
+    assert quantised(np.array([-23, 0, 5]), 8).tolist() == [-24, 0, 8]
+    assert quantised(np.array([22, 0, -1]), 4).tolist() == [24, 0, 0]
+    surface = {"surface": _Surface()}
+    exact = headroom(surface, split="test", count=1, views=6)
+    assert exact["shift_quantum"] == 1
+    # a quantum wider than the grid leaves the first view's completion where it was seen
+    still = headroom(surface, split="test", count=1, views=6, shift_quantum=1000)
+    s, e = still["per_view"]["surface"], exact["per_view"]["surface"]
+    assert s["alone"] == e["alone"] and s["own_slider_moved"][0] == e["own_slider_moved"][0]
+    assert s["own_slider_moved"] != e["own_slider_moved"]
+    with pytest.raises(SystemExit):
+        main(["--models", "single_view", "--shift-quantum", "0"])
+    assert "--shift-quantum" in capsys.readouterr().err
