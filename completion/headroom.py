@@ -16,6 +16,10 @@ completion quality can reach; beyond it the completion itself must get better.
 slider only to within Q/2 voxels; Q = 8 is a whole place of the 5³ bottleneck): how precisely a
 memory must put the shape down for it to pay.
 
+Two more columns say what a model draws where the slider is: "slider precision", the share of its
+predicted voxels within three voxels of the slider (the front object's voxels left out) that are
+the slider's, and "slider |dx|", how far along x (voxels) their centre lies from the slider's.
+
     python -m completion.headroom      # shipped single_view and mvp, test split, seed 0
     python -m completion.headroom --models mvp,runs/w/mvp.pt --split val --count 5
     python -m completion.headroom --models mvp --shift-quantum 4   # transport to within 2 voxels
@@ -38,6 +42,7 @@ from completion.scenes import VIEWS, make_sequence, object_meshes_in_camera
 
 SLIDING = 1  # the sliding object's index in a slide-behind sequence (the front one is 0)
 NEAR = 2  # voxels: how far from the slider's truth a predicted voxel still counts as its completion
+AROUND = 3  # voxels: the neighbourhood of the slider whose predicted voxels the precision judges
 
 
 def slider_shift(seq, view: int) -> np.ndarray:
@@ -62,6 +67,20 @@ def moved(voxels: np.ndarray, shift: np.ndarray) -> np.ndarray:
     return ndimage.shift(voxels.astype(np.uint8), shift, order=0, mode="constant", cval=0) > 0
 
 
+def _offset_x(drawn: np.ndarray, sliding: np.ndarray) -> float:
+    """|mean i of ``drawn`` − mean i of ``sliding``| in voxels; NaN if either is empty."""
+    if not drawn.any() or not sliding.any():
+        return float("nan")
+    return float(abs(np.nonzero(drawn)[0].mean() - np.nonzero(sliding)[0].mean()))
+
+
+def _mean_over_sequences(values: list) -> np.ndarray:
+    """Per view, the mean over the sequences that have a value (NaN where none has)."""
+    a = np.asarray(values, dtype=np.float64)
+    have = ~np.isnan(a)
+    return np.where(have.any(0), np.where(have, a, 0).sum(0) / np.maximum(have.sum(0), 1), np.nan)
+
+
 def headroom(
     models: dict[str, torch.nn.Module], *, split: str = "test", count: int = 10, seed: int = 0,
     views: int = VIEWS, shift_quantum: int = 1,
@@ -71,8 +90,12 @@ def headroom(
     ("with_sliding_truth") or with its own first-view completion of the slider moved where the
     slider is ("own_slider_moved"; the translation rounded to a multiple of ``shift_quantum``
     voxels), and the share of the sliding object's voxels it predicts
-    ("sliding_recall"); and per view the sliding object's share of the target."""
-    keys = ("alone", "with_sliding_truth", "own_slider_moved", "sliding_recall")
+    ("sliding_recall"), the share of its voxels around the slider that are the slider's
+    ("sliding_precision") and the x distance of their centre from the slider's
+    ("sliding_offset_x", NaN where it predicts none there); and per view the sliding object's
+    share of the target."""
+    keys = ("alone", "with_sliding_truth", "own_slider_moved", "sliding_recall",
+            "sliding_precision", "sliding_offset_x")
     rows = {name: {k: [] for k in keys} for name in models}
     share = []
     for index in range(count):
@@ -86,6 +109,8 @@ def headroom(
         sliding = np.stack(sliding)
         share.append(sliding.sum((1, 2, 3)) / seq.targets.sum((1, 2, 3)))
         near_first = ndimage.binary_dilation(sliding[0], iterations=NEAR)
+        around = [ndimage.binary_dilation(s, iterations=AROUND) & ~(t & ~s)
+                  for s, t in zip(sliding, seq.targets, strict=True)]
         shifts = [quantised(slider_shift(seq, v), shift_quantum) for v in range(len(seq))]
         for name, model in models.items():
             with torch.no_grad():
@@ -97,8 +122,13 @@ def headroom(
             rows[name]["own_slider_moved"].append(grid.jaccard(carried, seq.targets))
             found = (pred & sliding).sum((1, 2, 3)) / np.maximum(sliding.sum((1, 2, 3)), 1)
             rows[name]["sliding_recall"].append(found)
+            drawn = [pred[v] & around[v] for v in range(len(seq))]
+            rows[name]["sliding_precision"].append(
+                [(d & s).sum() / max(d.sum(), 1) for d, s in zip(drawn, sliding, strict=True)])
+            rows[name]["sliding_offset_x"].append([_offset_x(d, s) for d, s in
+                                                   zip(drawn, sliding, strict=True)])
     per_view = {
-        name: {k: np.mean(v, axis=0).round(4).tolist() for k, v in r.items()}
+        name: {k: _mean_over_sequences(v).round(4).tolist() for k, v in r.items()}
         for name, r in rows.items()
     }
     return {"split": split, "count": count, "seed": seed, "shift_quantum": shift_quantum,
@@ -134,14 +164,18 @@ def main(argv: list[str] | None = None) -> int:
           f"moved in steps of {args.shift_quantum} voxel(s): mean Jaccard over the views "
           "(last six views)")  # fmt: skip
     print(f"{'model':>24}  {'alone':>15}  {'+ sliding truth':>15}  {'headroom':>8}  "
-          f"{'+ own slider moved':>18}  {'sliding recall':>15}")  # fmt: skip
+          f"{'+ own slider moved':>18}  {'sliding recall':>15}  {'slider precision':>16}  "
+          f"{'slider |dx|':>13}")  # fmt: skip
     for name, r in out["per_view"].items():
         alone, full = np.array(r["alone"]), np.array(r["with_sliding_truth"])
         own, found = np.array(r["own_slider_moved"]), np.array(r["sliding_recall"])
+        prec, dx = np.array(r["sliding_precision"]), np.array(r["sliding_offset_x"])
         print(f"{name:>24}  {alone.mean():.3f} ({alone[-6:].mean():.3f})  "
               f"{full.mean():.3f} ({full[-6:].mean():.3f})  {full.mean() - alone.mean():+.3f}  "
               f"   {own.mean():.3f} ({own[-6:].mean():.3f})  "
-              f"   {found.mean():.3f} ({found[-6:].mean():.3f})")
+              f"   {found.mean():.3f} ({found[-6:].mean():.3f})"
+              f"    {prec.mean():.3f} ({prec[-6:].mean():.3f})"
+              f"  {_mean_over_sequences(dx):.2f} ({_mean_over_sequences(dx[-6:]):.2f})")
     print(f"sliding object's share of the target: {np.mean(out['sliding_share']):.3f}")
     return 0
 

@@ -26,6 +26,12 @@ def test_headroom_is_what_the_sliding_object_adds():
     # the truth added to a prediction never lowers its Jaccard; a full grid gains nothing
     assert full["with_sliding_truth"] == full["alone"]
     assert empty["sliding_recall"] == [0.0] * 3 and full["sliding_recall"] == [1.0] * 3
+    # what is drawn around the slider: nothing (no offset to give), or everything (the slider's
+    # share of its neighbourhood, centred on it)
+    assert empty["sliding_precision"] == [0.0] * 3
+    assert all(np.isnan(x) for x in empty["sliding_offset_x"])
+    assert all(0.0 < x < 1.0 for x in full["sliding_precision"])
+    assert all(0.0 <= x < 1.0 for x in full["sliding_offset_x"])
 
 
 class _Surface(torch.nn.Module):
@@ -55,6 +61,10 @@ def test_own_slider_moved_carries_the_first_views_completion_to_where_the_slider
     assert all(o >= a for o, a in zip(surface["own_slider_moved"], surface["alone"], strict=True))
     assert np.mean(surface["own_slider_moved"]) > np.mean(surface["alone"])
     assert empty["own_slider_moved"] == empty["alone"] == [0.0] * 6  # nothing to carry
+    # the seen surface is the slider's more often than the whole neighbourhood is
+    full = headroom({"full": _Constant(1)}, split="test", count=2, views=6)["per_view"]["full"]
+    assert all(s > f for s, f in zip(surface["sliding_precision"], full["sliding_precision"],
+                                     strict=True))
 
 
 def test_headroom_cli_prints_the_table_and_rejects_a_missing_model(capsys, tmp_path):
@@ -64,6 +74,7 @@ def test_headroom_cli_prints_the_table_and_rejects_a_missing_model(capsys, tmp_p
     assert main(["--models", "single_view", "--count", "1"]) == 0
     out = capsys.readouterr().out
     assert "single_view" in out and "sliding object's share" in out and "own slider moved" in out
+    assert "slider precision" in out and "slider |dx|" in out
 
 
 def test_shift_quantum_rounds_the_slider_translation_and_rejects_zero(capsys):
