@@ -23,6 +23,7 @@ the slider's, and "slider |dx|", how far along x (voxels) their centre lies from
     python -m completion.headroom      # shipped single_view and mvp, test split, seed 0
     python -m completion.headroom --models mvp,runs/w/mvp.pt --split val --count 5
     python -m completion.headroom --models mvp --shift-quantum 4   # transport to within 2 voxels
+    python -m completion.headroom --models single_view,mvp --split val --count 24 --threshold 0.6
 """
 
 from __future__ import annotations
@@ -136,6 +137,16 @@ def headroom(
             "sliding_share": np.mean(share, axis=0).round(4).tolist()}  # fmt: skip
 
 
+def _probability(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number in (0, 1), got {text!r}") from None
+    if not 0.0 < value < 1.0:
+        raise argparse.ArgumentTypeError(f"expected a number in (0, 1), got {value}")
+    return value
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(
         prog="python -m completion.headroom",
@@ -147,6 +158,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--split", choices=SPLITS, default="test")
     p.add_argument("--count", type=integer_at_least(1), default=10, help="sequences")
     p.add_argument("--seed", type=int, default=0, help="scene seed (the evaluation's: 0)")
+    p.add_argument("--threshold", type=_probability, default=None, metavar="T",
+                   help="decide occupancy at T for every model (default: each model's own)")
     p.add_argument("--shift-quantum", type=integer_at_least(1), default=1, metavar="Q",
                    help="round the slider's translation in '+ own slider moved' to a multiple "
                    "of Q voxels (default 1: exact)")  # fmt: skip
@@ -158,6 +171,9 @@ def main(argv: list[str] | None = None) -> int:
         models = {n: load_model(n).eval() for n in names}
     except FileNotFoundError as exc:
         p.error(str(exc))
+    if args.threshold is not None:
+        for model in models.values():
+            model.threshold = args.threshold
     out = headroom(models, split=args.split, count=args.count, seed=args.seed,
                    shift_quantum=args.shift_quantum)
     print(f"slide behind, {args.split} split, {args.count} sequences, seed {args.seed}, slider "

@@ -75,6 +75,12 @@ def test_headroom_cli_prints_the_table_and_rejects_a_missing_model(capsys, tmp_p
     out = capsys.readouterr().out
     assert "single_view" in out and "sliding object's share" in out and "own slider moved" in out
     assert "slider precision" in out and "slider |dx|" in out
+    assert main(["--models", "single_view", "--count", "1", "--threshold", "0.99"]) == 0
+    assert capsys.readouterr().out != out  # a stricter threshold draws fewer voxels
+    for bad in ("1", "0", "half"):
+        with pytest.raises(SystemExit):
+            main(["--models", "single_view", "--threshold", bad])
+        assert "expected a number in (0, 1)" in capsys.readouterr().err
 
 
 def test_shift_quantum_rounds_the_slider_translation_and_rejects_zero(capsys):
