@@ -12,7 +12,8 @@ the same steps (robust to other processes on a shared machine when ``--threads 1
 ``state_bytes[L]`` is the length of
 ``state_to_bytes(state)`` after L views, i.e. what a service stores per session. Between
 checkpoints the stream is advanced without decoding (``model.advance``), and only ``--repeats``
-steps are timed at each checkpoint (each from the same state), so 1000 views take seconds.
+steps are timed at each checkpoint (each from the same state, the checkpoints in turn), so 1000
+views take seconds.
 Shipped weights from ``completion/weights/<name>.pt`` are used when present
 (``"weights": "shipped"``), otherwise a freshly initialised model of the default config
 (``"weights": "fresh"``); latency and state size do not depend on the weights' values.
@@ -82,22 +83,28 @@ def bench_model(
         state = model.init_state(1)
         for i in range(WARMUP_STEPS):
             model.step(state, frames[i % len(frames)])
-        seen = 0
+        seen, states = 0, {}
         for count in checkpoints:
             while seen < count:
                 state = model.advance(state, frames[seen % len(frames)])
                 seen += 1
-            times, cpu_times = [], []
-            for r in range(repeats):
-                frame = frames[(seen + r) % len(frames)]
-                start, cpu_start = time.perf_counter(), time.thread_time()
-                model.step(state, frame)
-                times.append(time.perf_counter() - start)
-                cpu_times.append(time.thread_time() - cpu_start)
-            latency[str(count)] = round(1000.0 * statistics.median(times), 3)
-            cpu[str(count)] = round(1000.0 * statistics.median(cpu_times), 3)
+            states[count] = state
             sizes[str(count)] = len(state_to_bytes(state))
             tensor_sizes[str(count)] = state_nbytes(state)
+        # round robin over the checkpoints, so that a slow spell of a shared machine falls on
+        # every L alike and the ratios between them stay meaningful
+        times = {count: [] for count in checkpoints}
+        cpu_times = {count: [] for count in checkpoints}
+        for r in range(repeats):
+            for count in checkpoints:
+                frame = frames[(count + r) % len(frames)]
+                start, cpu_start = time.perf_counter(), time.thread_time()
+                model.step(states[count], frame)
+                times[count].append(time.perf_counter() - start)
+                cpu_times[count].append(time.thread_time() - cpu_start)
+        for count in checkpoints:
+            latency[str(count)] = round(1000.0 * statistics.median(times[count]), 3)
+            cpu[str(count)] = round(1000.0 * statistics.median(cpu_times[count]), 3)
     return {
         "latency_ms": latency,
         "cpu_ms": cpu,
