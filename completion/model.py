@@ -120,6 +120,13 @@ class ModelConfig:
     image (an object sliding sideways, a pan) while the read stays local in height and depth.
     Changes no tensor: a checkpoint of the same place path loads.
     place_features: M of the place path in "both" mode (0: n_features).
+    place_fine: numbers per place of the fine memory (0: none; attention kinds with tokens per
+    place). Each place's 2×2×2 cells of the context encoder's next-finer feature volume (10³ at
+    G = 40) are packed into place_fine numbers that the place path's first attention layer
+    carries with the same attention weights as its values (extra value channels: the memory
+    stays H·M·(E + place_fine/H) per place), and what it reads is unpacked to that level and
+    added to the decoder's skip there, starting at zero. The 5³ bottleneck alone gives the
+    decoder 8³-voxel blocks to draw a remembered shape from; this gives it the finer level too.
     seed: weight initialisation and the initial FAVOR+ draw.
     """
 
@@ -145,6 +152,7 @@ class ModelConfig:
     place_window: int = 0
     place_window_x: int = 0
     place_features: int = 0
+    place_fine: int = 0
     seed: int = 0
 
     def __post_init__(self) -> None:
@@ -187,6 +195,15 @@ class ModelConfig:
             raise ValueError("place_window_x needs place_window >= 1 and must be >= 0, got "
                              f"place_window {self.place_window}, place_window_x "
                              f"{self.place_window_x}")
+        if self.place_fine and (self.place_fine < 0 or self.context == "view"
+                                or self.kind not in ("mvp", "mvt") or len(self.channels) < 2
+                                or self.place_fine % self.n_heads):
+            raise ValueError("place_fine needs an attention model (mvp, mvt) with tokens per place "
+                             "(context 'place' or 'both'), two U-Net levels or more, and a "
+                             f"multiple of n_heads {self.n_heads}; got place_fine "
+                             f"{self.place_fine}, kind {self.kind!r}, context {self.context!r}")
+        if self.place_fine < 0:
+            raise ValueError(f"place_fine must be >= 0, got {self.place_fine}")
         if self.place_window and self.context == "view":
             raise ValueError("place_window needs tokens per place (context 'place' or 'both')")
         if self.context == "both" and self.place_dim % (2 * self.n_heads):
@@ -405,10 +422,27 @@ class PlaceBridge(nn.Module):
         self.expand = Conv3d(d, c, 1)
         nn.init.zeros_(self.expand.weight)
         nn.init.zeros_(self.expand.bias)
+        self.fine = config.place_fine
+        if self.fine:  # the next-finer level, 2×2×2 cells a place, in and out
+            c_fine = config.channels[-2]
+            self.fine_pack = Conv3d(c_fine, self.fine, 2, stride=2)
+            self.fine_unpack = nn.ConvTranspose3d(self.fine, c_fine, 2, stride=2)
+            nn.init.zeros_(self.fine_unpack.weight)
+            nn.init.zeros_(self.fine_unpack.bias)
 
     def token(self, bottom: Tensor) -> Tensor:
         x = self.reduce(bottom).flatten(2).transpose(1, 2)  # (N, P, D)
         return x + self.place.to(x.dtype)
+
+    def fine_token(self, finer: Tensor) -> Tensor:
+        """(N, C, 2g, 2g, 2g) -> (N, P, place_fine): each place's cells packed."""
+        return self.fine_pack(finer).flatten(2).transpose(1, 2)
+
+    def fine_volume(self, fine: Tensor) -> Tensor:
+        """(N, P, place_fine) -> (N, C, 2g, 2g, 2g), to add to the decoder's skip there."""
+        g = self.g
+        x = fine.transpose(1, 2).reshape(fine.shape[0], -1, g, g, g)
+        return self.fine_unpack(x.contiguous(memory_format=torch.channels_last_3d))
 
     def volume(self, token: Tensor) -> Tensor:
         g = self.g
@@ -497,33 +531,48 @@ class CompletionModel(nn.Module):
         skips = self.encoder(local_frames)  # local tower: this frame alone
         bottom = skips[-1]
         if self.context_encoder is not None:
-            features = self.context_encoder(frames)[-1]
+            levels = self.context_encoder(frames)
             for bridge, tower in self._paths():
-                tokens = bridge.token(features)
+                tokens = bridge.token(levels[-1])
                 tokens = tokens.view(b, n, *tokens.shape[1:])  # (B, L, P, D)
+                fine = _fine_tokens(bridge, levels, (b, n))  # (B, L, P, F) or None
                 with _full_precision(tokens):
-                    context = tower(tokens.float())  # (B, L, P, D)
+                    if fine is None:
+                        context = tower(tokens.float())  # (B, L, P, D)
+                    else:
+                        context, fine = tower(tokens.float(), extra=fine.float())
                 volume = bridge.volume(context.flatten(0, 1)).to(bottom.dtype)
                 if drop_view_path is not None and bridge is self.bridge:
                     keep = (~drop_view_path).repeat_interleave(n).to(volume.dtype)  # (N,)
                     volume = volume * keep.view(-1, 1, 1, 1, 1)
                 bottom = bottom + volume
+                if fine is not None:
+                    skips = _add_fine(skips, bridge.fine_volume(fine.flatten(0, 1)))
         logits = self.decoder(bottom, skips, local_frames)  # (N, G, G, G)
         return logits.view(seq.shape)
 
-    def _context_step(self, frame: Tensor, state: State) -> tuple[list[Tensor], State]:
-        """One view through the context tower: each path's bottleneck volume (B, Cn, g, g, g)
-        and the new state of every sequence model."""
+    def _context_step(
+        self, frame: Tensor, state: State
+    ) -> tuple[list[Tensor], list[Tensor], State]:
+        """One view through the context tower: each path's bottleneck volume (B, Cn, g, g, g),
+        the fine volumes of the paths with ``place_fine`` (B, Cn-1, 2g, 2g, 2g), and the new
+        state of every sequence model."""
         assert self.context_encoder is not None
-        features = self.context_encoder(frame)[-1]
-        volumes, new = [], {}
+        levels = self.context_encoder(frame)
+        volumes, fines, new = [], [], {}
         for bridge, tower in self._paths():
-            tokens = bridge.token(features)
+            tokens = bridge.token(levels[-1])
+            fine = _fine_tokens(bridge, levels, None)
             with _full_precision(tokens):
-                context, entries = tower.step(tokens.float(), state["t"], state)
+                if fine is None:
+                    context, entries = tower.step(tokens.float(), state["t"], state)
+                else:
+                    (context, fine), entries = tower.step(tokens.float(), state["t"], state,
+                                                          extra=fine.float())
+                    fines.append(bridge.fine_volume(fine))
             volumes.append(bridge.volume(context))
             new |= entries
-        return volumes, new
+        return volumes, fines, new
 
     # ---- streaming -----------------------------------------------------------------------
 
@@ -548,9 +597,11 @@ class CompletionModel(nn.Module):
         bottom = skips[-1]
         new: State = {}
         if self.context_encoder is not None:
-            volumes, new = self._context_step(frame, state)
+            volumes, fines, new = self._context_step(frame, state)
             for volume in volumes:
                 bottom = bottom + volume.to(bottom.dtype)
+            for fine in fines:
+                skips = _add_fine(skips, fine)
         new["t"] = state["t"] + 1
         return self.decoder(bottom, skips, frame), new
 
@@ -563,7 +614,7 @@ class CompletionModel(nn.Module):
         self._check_state(state, batch=frame.shape[0])
         new: State = {}
         if self.context_encoder is not None:
-            new = self._context_step(frame, state)[1]
+            new = self._context_step(frame, state)[2]
         new["t"] = state["t"] + 1
         return new
 
@@ -604,6 +655,22 @@ def _tower(
         return LSTMTower(config, places=places, prefix=prefix)
     mechanism = "performer" if config.kind == "mvp" else "exact"
     return AttentionTower(config, mechanism=mechanism, generator=generator, prefix=prefix)
+
+
+def _fine_tokens(
+    bridge: Bridge | PlaceBridge, levels: list[Tensor], batch: tuple[int, int] | None
+) -> Tensor | None:
+    """A place bridge's fine tokens from the context encoder's next-finer level (``place_fine``),
+    (N, P, F) or with ``batch`` = (B, L) (B, L, P, F); None without fine memory."""
+    if not getattr(bridge, "fine", 0):
+        return None
+    fine = bridge.fine_token(levels[-2])
+    return fine if batch is None else fine.view(*batch, *fine.shape[1:])
+
+
+def _add_fine(skips: list[Tensor], fine: Tensor) -> list[Tensor]:
+    """The local tower's skips with ``fine`` added to the next-finer level's (a new list)."""
+    return [*skips[:-2], skips[-2] + fine.to(skips[-2].dtype), skips[-1]]
 
 
 def _full_precision(x: Tensor):

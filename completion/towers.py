@@ -81,6 +81,11 @@ class CausalSelfAttention(nn.Module):
     view's angles (:func:`value_angles`) before it enters the memory and the output is rotated
     back by the current view's, so view s's value reaches view t turned by the offset t − s
     alone. The memory keeps its size; the angles need only the view index.
+
+    ``carries_fine`` (the first layer of a place path with ``config.place_fine``): each head's
+    values get Ex = place_fine / H extra channels, the fine memory's tokens, read with the same
+    weights (so the memory is (B, H, P, M, E + Ex)); ``forward`` and ``step`` take them as
+    ``extra`` and return what they read beside the output.
     """
 
     def __init__(
@@ -89,6 +94,7 @@ class CausalSelfAttention(nn.Module):
         *,
         mechanism: Literal["performer", "exact"],
         generator: torch.Generator | None = None,
+        carries_fine: bool = False,
     ) -> None:
         super().__init__()
         if mechanism not in ("performer", "exact"):
@@ -100,6 +106,11 @@ class CausalSelfAttention(nn.Module):
         self.out = nn.Linear(config.embed_dim, config.embed_dim)
         self.qk_norm = config.qk_norm
         self.value_rotation = config.value_rotation
+        # fine memory (config.place_fine): extra value channels per head, read with the same
+        # attention weights as the values, not rotated, returned beside the output
+        self.extra = 0
+        if carries_fine and config.context == "place":
+            self.extra = config.place_fine // config.n_heads
         # with a token per place: attend only within place_window places (0: everywhere)
         self.side = config.grid_size // 2 ** len(config.channels)
         self.window: int | tuple[int, int, int] = 0
@@ -133,13 +144,31 @@ class CausalSelfAttention(nn.Module):
             return None
         return value_angles(positions, self.head_dim, self.value_rotation)
 
-    def forward(self, x: Tensor) -> Tensor:
-        """Parallel form: x (B, L, P, D) -> (B, L, P, D)."""
+    def _with_extra(self, v: Tensor, extra: Tensor | None, heads_at: int) -> Tensor:
+        """v with the extra value channels appended (``extra`` (..., H·Ex) split into heads and
+        moved like v's head axis, which sits at ``heads_at``)."""
+        if (extra is None) != (not self.extra):
+            raise ValueError(f"this attention takes {self.extra} extra value channels per head "
+                             f"(place_fine); got {'none' if extra is None else 'some'}")
+        if extra is None:
+            return v
+        e = extra.view(*extra.shape[:-1], self.n_heads, self.extra).movedim(-2, heads_at)
+        return torch.cat((v, e.to(v.dtype)), dim=-1)
+
+    def _split_extra(self, y: Tensor) -> tuple[Tensor, Tensor | None]:
+        if not self.extra:
+            return y, None
+        return y[..., : self.head_dim], y[..., self.head_dim :]
+
+    def forward(self, x: Tensor, extra: Tensor | None = None) -> Tensor | tuple[Tensor, Tensor]:
+        """Parallel form: x (B, L, P, D) -> (B, L, P, D); with ``extra`` (B, L, P, H·Ex) also
+        what the attention reads of it, (B, L, P, H·Ex)."""
         q, k, v = (t.permute(0, 3, 1, 2, 4) for t in self._heads(x))  # (B, H, L, P, E)
         angles = self._angles(torch.arange(x.shape[1], device=x.device))  # (L, E/2)
         if angles is not None:
             angles = angles.unsqueeze(-2)  # (L, 1, E/2): one turn per view, every place
             v = rotate_pairs(v, angles)
+        v = self._with_extra(v, extra, 1)  # (B, H, L, P, E + Ex)
         if self.features is not None:
             phi_q, phi_k = self.features(q, is_query=True), self.features(k, is_query=False)
             if self.window:
@@ -150,29 +179,37 @@ class CausalSelfAttention(nn.Module):
                 y = block_causal_linear_attention(phi_q, phi_k, v)
         else:
             y = block_causal_softmax_attention(q, k, v, near=self.near)
+        y, y_extra = self._split_extra(y)
         if angles is not None:
             y = rotate_pairs(y, -angles)
-        y = y.to(x.dtype).permute(0, 2, 3, 1, 4).flatten(3)  # (B, L, P, D)
-        return self.out(y)
+        y = self.out(y.to(x.dtype).permute(0, 2, 3, 1, 4).flatten(3))  # (B, L, P, D)
+        if y_extra is None:
+            return y
+        return y, y_extra.permute(0, 2, 3, 1, 4).flatten(3)
 
     def init_state(self, batch: int, *, device: torch.device, prefix: str) -> State:
         if self.features is not None:
             places = (self.side**3,) if self.window else ()  # one memory per place
             s, z = init_linear_attention_state(
-                (batch, self.n_heads, *places), self.features.n_features, self.head_dim,
-                device=device,
+                (batch, self.n_heads, *places), self.features.n_features,
+                self.head_dim + self.extra, device=device,
             )
             return {f"{prefix}S": s, f"{prefix}z": z}
         empty = torch.zeros(batch, self.n_heads, 0, self.head_dim, device=device)
-        return {f"{prefix}k": empty, f"{prefix}v": empty.clone()}
+        values = torch.zeros(batch, self.n_heads, 0, self.head_dim + self.extra, device=device)
+        return {f"{prefix}k": empty, f"{prefix}v": values}
 
-    def step(self, x: Tensor, t: Tensor, state: State, *, prefix: str) -> tuple[Tensor, State]:
-        """Streaming form: x (B, P, D), t 0-d view index -> (B, P, D) and this layer's new
+    def step(
+        self, x: Tensor, t: Tensor, state: State, *, prefix: str, extra: Tensor | None = None
+    ) -> tuple[Tensor | tuple[Tensor, Tensor], State]:
+        """Streaming form: x (B, P, D), t 0-d view index -> (B, P, D) (with ``extra``
+        (B, P, H·Ex): and what is read of it, as in :meth:`forward`) and this layer's new
         state entries."""
         q, k, v = (u.transpose(1, 2) for u in self._heads(x))  # (B, H, P, E)
         angles = self._angles(t)  # (E/2,)
         if angles is not None:
             v = rotate_pairs(v, angles)
+        v = self._with_extra(v, extra, 1)  # (B, H, P, E + Ex)
         if self.features is not None:
             phi_q, phi_k = self.features(q, is_query=True), self.features(k, is_query=False)
             s, z = state[f"{prefix}S"], state[f"{prefix}z"]
@@ -194,9 +231,13 @@ class CausalSelfAttention(nn.Module):
             weights = torch.softmax(scores * self.head_dim**-0.5, dim=-1)
             y = weights @ values  # (B, H, P, E)
             new = {f"{prefix}k": keys, f"{prefix}v": values}
+        y, y_extra = self._split_extra(y)
         if angles is not None:
             y = rotate_pairs(y, -angles)
-        return self.out(y.to(x.dtype).transpose(1, 2).flatten(2)), new
+        y = self.out(y.to(x.dtype).transpose(1, 2).flatten(2))
+        if y_extra is None:
+            return y, new
+        return (y, y_extra.transpose(1, 2).flatten(2)), new
 
 
 class Block(nn.Module):
@@ -208,24 +249,32 @@ class Block(nn.Module):
         *,
         mechanism: Literal["performer", "exact"],
         generator: torch.Generator | None = None,
+        carries_fine: bool = False,
     ) -> None:
         super().__init__()
         d = config.embed_dim
         self.norm1 = nn.LayerNorm(d)
-        self.attn = CausalSelfAttention(config, mechanism=mechanism, generator=generator)
+        self.attn = CausalSelfAttention(config, mechanism=mechanism, generator=generator,
+                                        carries_fine=carries_fine)
         self.norm2 = nn.LayerNorm(d)
         self.mlp = nn.Sequential(
             nn.Linear(d, config.mlp_ratio * d), nn.ReLU(), nn.Linear(config.mlp_ratio * d, d)
         )
 
-    def forward(self, x: Tensor) -> Tensor:  # (B, L, P, D) -> (B, L, P, D)
-        x = x + self.attn(self.norm1(x))
-        return x + self.mlp(self.norm2(x))
-
-    def step(self, x: Tensor, t: Tensor, state: State, *, prefix: str) -> tuple[Tensor, State]:
-        a, new = self.attn.step(self.norm1(x), t, state, prefix=prefix)  # (B, P, D)
+    def forward(self, x: Tensor, extra: Tensor | None = None) -> tuple[Tensor, Tensor | None]:
+        """(B, L, P, D) -> (B, L, P, D), and what the attention read of ``extra`` (or None)."""
+        a = self.attn(self.norm1(x), extra)
+        a, read = a if extra is not None else (a, None)
         x = x + a
-        return x + self.mlp(self.norm2(x)), new
+        return x + self.mlp(self.norm2(x)), read
+
+    def step(
+        self, x: Tensor, t: Tensor, state: State, *, prefix: str, extra: Tensor | None = None
+    ) -> tuple[Tensor, Tensor | None, State]:
+        a, new = self.attn.step(self.norm1(x), t, state, prefix=prefix, extra=extra)  # (B, P, D)
+        a, read = a if extra is not None else (a, None)
+        x = x + a
+        return x + self.mlp(self.norm2(x)), read, new
 
 
 class AttentionTower(nn.Module):
@@ -243,7 +292,8 @@ class AttentionTower(nn.Module):
         self.config = config
         self.prefix = prefix  # of its state keys
         self.blocks = nn.ModuleList(
-            Block(config, mechanism=mechanism, generator=generator) for _ in range(config.n_layers)
+            Block(config, mechanism=mechanism, generator=generator, carries_fine=i == 0)
+            for i in range(config.n_layers)
         )
         self.norm = nn.LayerNorm(config.embed_dim)
 
@@ -253,11 +303,17 @@ class AttentionTower(nn.Module):
         pe = sinusoidal_encoding(positions, self.config.embed_dim, base=self.config.pos_base)
         return x + pe.unsqueeze(-2).to(x.dtype)  # the same code at every place of a view
 
-    def forward(self, x: Tensor) -> Tensor:  # (B, L, P, D) -> (B, L, P, D)
+    def forward(
+        self, x: Tensor, extra: Tensor | None = None
+    ) -> Tensor | tuple[Tensor, Tensor]:
+        """(B, L, P, D) -> (B, L, P, D); with ``extra`` (the fine memory's tokens, read by the
+        first block's attention) also what was read of it."""
         x = self._position(x, torch.arange(x.shape[1], device=x.device))
-        for block in self.blocks:
-            x = block(x)
-        return self.norm(x)
+        read = None
+        for i, block in enumerate(self.blocks):
+            x, r = block(x, extra if i == 0 else None)
+            read = r if i == 0 else read
+        return self.norm(x) if extra is None else (self.norm(x), read)
 
     def init_state(self, batch: int, *, device: torch.device) -> State:
         state: State = {}
@@ -265,14 +321,20 @@ class AttentionTower(nn.Module):
             state |= block.attn.init_state(batch, device=device, prefix=f"{self.prefix}layer{i}.")
         return state
 
-    def step(self, x: Tensor, t: Tensor, state: State) -> tuple[Tensor, State]:
-        """x (B, P, D), t 0-d view index -> (B, P, D), new tower state."""
+    def step(
+        self, x: Tensor, t: Tensor, state: State, *, extra: Tensor | None = None
+    ) -> tuple[Tensor | tuple[Tensor, Tensor], State]:
+        """x (B, P, D), t 0-d view index -> (B, P, D) (with ``extra``: and what was read of
+        it, as in :meth:`forward`), new tower state."""
         x = self._position(x, t.expand(x.shape[0]))
         new: State = {}
+        read = None
         for i, block in enumerate(self.blocks):
-            x, entries = block.step(x, t, state, prefix=f"{self.prefix}layer{i}.")
+            x, r, entries = block.step(x, t, state, prefix=f"{self.prefix}layer{i}.",
+                                       extra=extra if i == 0 else None)
+            read = r if i == 0 else read
             new |= entries
-        return self.norm(x), new
+        return (self.norm(x) if extra is None else (self.norm(x), read)), new
 
 
 class LSTMTower(nn.Module):

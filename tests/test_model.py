@@ -50,6 +50,9 @@ VARIANTS = [
     ("mvp", "softmax", 30, "both-local"),
     ("mvt", "softmax", 30, "place-local"),
     ("mvp", "softmax", 30, "both-row"),
+    ("mvp", "softmax", 30, "both-row-fine"),
+    ("mvt", "softmax", 30, "place-local-fine"),
+    ("mvp", "relu", 0, "place-fine"),
 ]
 IDS = [
     (f"{kind}-{kernel}" if kind == "mvp" else kind) + (f"-rot{rot}" if rot else "")
@@ -111,11 +114,14 @@ def stream(model: CompletionModel, seq: torch.Tensor) -> torch.Tensor:
 @pytest.fixture(params=VARIANTS, ids=IDS)
 def tiny_model(request: pytest.FixtureRequest) -> CompletionModel:
     kind, kernel, rotation, context = request.param
-    # "-local": attention within one place; "-row": and along the whole i row (place_window_x)
-    context, _, local = context.partition("-")
+    # "-local": attention within one place; "-row": and along the whole i row (place_window_x);
+    # "-fine": the fine memory (place_fine)
+    context, *options = context.split("-")
+    local = bool({"local", "row"} & set(options))
     return scrambled(tiny_config(kind, kernel, value_rotation=rotation, context=context,
-                                 place_window=int(bool(local)),
-                                 place_window_x=4 if local == "row" else 0))  # fmt: skip
+                                 place_window=int(local),
+                                 place_window_x=4 if "row" in options else 0,
+                                 place_fine=4 if "fine" in options else 0))  # fmt: skip
 
 
 # ---- the streaming contract -----------------------------------------------------------------
@@ -284,6 +290,39 @@ def test_place_window_x_reads_far_along_the_image_x_axis_only() -> None:
 
 
 @torch.no_grad()
+def test_fine_memory_starts_at_zero_and_then_carries_earlier_views(tmp_path: Path) -> None:
+    """place_fine: a checkpoint without it warm-starts it exactly (the fine read is unpacked by
+    a layer that starts at zero); with that layer trained and every coarse path's output off,
+    the fine memory alone carries a change in view 0 to view 3, and its size does not grow."""
+    from completion.train import warm_start
+
+    seq = random_views(1, 4)
+    changed = seq.clone()
+    changed[0, 0] = random_views(1, 1, seed=3, density=0.3)[0, 0]  # only view 0 differs
+    for kind, context in (("mvp", "both"), ("mvt", "place")):
+        base = tiny_config(kind, context=context, place_window=1, value_rotation=30)
+        source = scrambled(base)
+        save_checkpoint(source, tmp_path / f"{kind}.pt")
+        fine = build_model(base.replace(place_fine=4)).eval()
+        fresh = warm_start(fine, tmp_path / f"{kind}.pt")
+        assert fresh and all(".fine_" in name for name in fresh), fresh
+        torch.testing.assert_close(fine(seq), source(seq), atol=ATOL, rtol=0)
+        for bridge in (fine.bridge, fine.place_bridge):
+            if bridge is not None:
+                torch.nn.init.zeros_(bridge.expand.weight)
+                torch.nn.init.zeros_(bridge.expand.bias)
+        unpack = (fine.place_bridge or fine.bridge).fine_unpack
+        assert torch.equal(fine(changed)[0, 3], fine(seq)[0, 3])  # no memory reaches view 3
+        torch.nn.init.normal_(unpack.weight, std=0.5)
+        assert (fine(changed)[0, 3] - fine(seq)[0, 3]).abs().max() > 1e-4, kind
+        state, sizes = fine.init_state(1), set()
+        for t in range(4):
+            _, state = fine.step(state, seq[:, t])
+            sizes.add(state_nbytes(state))
+        assert len(sizes) == (1 if kind == "mvp" else 4)  # MVT's cache grows, MVP's memory not
+
+
+@torch.no_grad()
 def test_state_bytes_round_trip_gives_identical_outputs(tiny_model: CompletionModel) -> None:
     seq = random_views(2, 5)
     state = tiny_model.init_state(2)
@@ -410,6 +449,10 @@ def test_config_round_trips_through_a_plain_dict() -> None:
         ({"context": "place", "place_window": -1}, "must be >= 0"),
         ({"context": "place", "place_window_x": 2}, "place_window_x needs place_window >= 1"),
         ({"context": "place", "place_window": 1, "place_window_x": -1}, "place_window_x needs"),
+        ({"place_fine": 4}, "place_fine needs"),
+        ({"context": "place", "kind": "lstm", "place_fine": 4}, "place_fine needs"),
+        ({"context": "place", "place_fine": 3}, "place_fine needs"),
+        ({"context": "place", "place_fine": -2}, "place_fine"),
     ],
 )
 def test_bad_config_raises(overrides: dict[str, object], message: str) -> None:
