@@ -195,15 +195,14 @@ class ModelConfig:
             raise ValueError("place_window_x needs place_window >= 1 and must be >= 0, got "
                              f"place_window {self.place_window}, place_window_x "
                              f"{self.place_window_x}")
-        if self.place_fine and (self.place_fine < 0 or self.context == "view"
-                                or self.kind not in ("mvp", "mvt") or len(self.channels) < 2
-                                or self.place_fine % self.n_heads):
+        if self.place_fine < 0:
+            raise ValueError(f"place_fine must be >= 0, got {self.place_fine}")
+        if self.place_fine and (self.context == "view" or self.kind not in ("mvp", "mvt")
+                                or len(self.channels) < 2 or self.place_fine % self.n_heads):
             raise ValueError("place_fine needs an attention model (mvp, mvt) with tokens per place "
                              "(context 'place' or 'both'), two U-Net levels or more, and a "
                              f"multiple of n_heads {self.n_heads}; got place_fine "
                              f"{self.place_fine}, kind {self.kind!r}, context {self.context!r}")
-        if self.place_fine < 0:
-            raise ValueError(f"place_fine must be >= 0, got {self.place_fine}")
         if self.place_window and self.context == "view":
             raise ValueError("place_window needs tokens per place (context 'place' or 'both')")
         if self.context == "both" and self.place_dim % (2 * self.n_heads):
@@ -569,8 +568,9 @@ class CompletionModel(nn.Module):
                 else:
                     (context, fine), entries = tower.step(tokens.float(), state["t"], state,
                                                           extra=fine.float())
-                    fines.append(bridge.fine_volume(fine))
             volumes.append(bridge.volume(context))
+            if fine is not None:
+                fines.append(bridge.fine_volume(fine))
             new |= entries
         return volumes, fines, new
 

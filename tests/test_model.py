@@ -452,7 +452,7 @@ def test_config_round_trips_through_a_plain_dict() -> None:
         ({"place_fine": 4}, "place_fine needs"),
         ({"context": "place", "kind": "lstm", "place_fine": 4}, "place_fine needs"),
         ({"context": "place", "place_fine": 3}, "place_fine needs"),
-        ({"context": "place", "place_fine": -2}, "place_fine"),
+        ({"context": "place", "place_fine": -2}, "place_fine must be >= 0"),
     ],
 )
 def test_bad_config_raises(overrides: dict[str, object], message: str) -> None:
