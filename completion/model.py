@@ -49,6 +49,7 @@ import torch
 from torch import Tensor, nn
 
 from completion.performer import FeatureMap, Kernel
+from completion.shift import ShiftMemory
 from completion.towers import AttentionTower, LSTMTower
 
 ModelKind = Literal["single_view", "mvp", "mvt", "lstm"]
@@ -127,6 +128,13 @@ class ModelConfig:
     stays H·M·(E + place_fine/H) per place), and what it reads is unpacked to that level and
     added to the decoder's skip there, starting at zero. The 5³ bottleneck alone gives the
     decoder 8³-voxel blocks to draw a remembered shape from; this gives it the finer level too.
+    shift_heads: heads of the shift memory (0: none; multi-view kinds): each view writes its finest
+    context level into one memory per row along i as a Fourier series, in the frame of a
+    reference position it predicts, and the current view reads it back in the frame of its own,
+    so a shape moves along the image's x axis by any fraction of a 2-voxel cell
+    (:mod:`completion.shift`). Its read is added to the decoder's (G/2)³ skip, starting at zero.
+    shift_channels: Cv, channels a head writes. shift_freqs: M frequencies along i (0: G/2, the
+    full resolution of that level). Memory: H·Cv·M·(G/2)²·2 + H·(G/2)² numbers.
     seed: weight initialisation and the initial FAVOR+ draw.
     """
 
@@ -153,6 +161,9 @@ class ModelConfig:
     place_window_x: int = 0
     place_features: int = 0
     place_fine: int = 0
+    shift_heads: int = 0
+    shift_channels: int = 8
+    shift_freqs: int = 0
     seed: int = 0
 
     def __post_init__(self) -> None:
@@ -203,6 +214,14 @@ class ModelConfig:
                              "(context 'place' or 'both'), two U-Net levels or more, and a "
                              f"multiple of n_heads {self.n_heads}; got place_fine "
                              f"{self.place_fine}, kind {self.kind!r}, context {self.context!r}")
+        if self.shift_heads < 0 or self.shift_channels < 1 or not (
+                0 <= self.shift_freqs <= self.grid_size // 2):
+            raise ValueError("shift_heads must be >= 0, shift_channels >= 1 and shift_freqs in "
+                             f"[0, G/2 = {self.grid_size // 2}]; got {self.shift_heads}, "
+                             f"{self.shift_channels}, {self.shift_freqs}")
+        if self.shift_heads and (self.kind == "single_view" or len(self.channels) < 2):
+            raise ValueError("shift_heads needs a multi-view model (a memory) with two U-Net "
+                             f"levels or more, got kind {self.kind!r}, channels {self.channels}")
         if self.place_window and self.context == "view":
             raise ValueError("place_window needs tokens per place (context 'place' or 'both')")
         if self.context == "both" and self.place_dim % (2 * self.n_heads):
@@ -484,6 +503,8 @@ class CompletionModel(nn.Module):
                 self.place_bridge = PlaceBridge(place)
                 self.place_tower = _tower(place, self.place_bridge.places, generator,
                                           prefix="place.")
+        # last, so the other modules draw the same initial weights with or without it
+        self.shift_memory = ShiftMemory(config) if config.shift_heads else None
 
     def _paths(self) -> list[tuple[Bridge | PlaceBridge, AttentionTower | LSTMTower]]:
         """The context paths, (bridge, sequence model) each: none, one, or view and place."""
@@ -547,15 +568,17 @@ class CompletionModel(nn.Module):
                 bottom = bottom + volume
                 if fine is not None:
                     skips = _add_fine(skips, bridge.fine_volume(fine.flatten(0, 1)))
+            if self.shift_memory is not None:
+                skips = _add_shift(skips, self.shift_memory(levels[0], (b, n)))
         logits = self.decoder(bottom, skips, local_frames)  # (N, G, G, G)
         return logits.view(seq.shape)
 
     def _context_step(
         self, frame: Tensor, state: State
-    ) -> tuple[list[Tensor], list[Tensor], State]:
+    ) -> tuple[list[Tensor], list[Tensor], Tensor | None, State]:
         """One view through the context tower: each path's bottleneck volume (B, Cn, g, g, g),
-        the fine volumes of the paths with ``place_fine`` (B, Cn-1, 2g, 2g, 2g), and the new
-        state of every sequence model."""
+        the fine volumes of the paths with ``place_fine`` (B, Cn-1, 2g, 2g, 2g), the shift
+        memory's read (B, C0, G/2, G/2, G/2) or None, and the new state of every memory."""
         assert self.context_encoder is not None
         levels = self.context_encoder(frame)
         volumes, fines, new = [], [], {}
@@ -572,7 +595,11 @@ class CompletionModel(nn.Module):
             if fine is not None:
                 fines.append(bridge.fine_volume(fine))
             new |= entries
-        return volumes, fines, new
+        shift = None
+        if self.shift_memory is not None:
+            shift, entries = self.shift_memory.step(levels[0], state)
+            new |= entries
+        return volumes, fines, shift, new
 
     # ---- streaming -----------------------------------------------------------------------
 
@@ -584,6 +611,8 @@ class CompletionModel(nn.Module):
         state: State = {"t": torch.zeros((), dtype=torch.int64, device=device)}
         for _, tower in self._paths():
             state |= tower.init_state(batch, device=device)
+        if self.shift_memory is not None:
+            state |= self.shift_memory.init_state(batch, device=device)
         return state
 
     def step(self, state: State, frame: Tensor) -> tuple[Tensor, State]:
@@ -597,11 +626,13 @@ class CompletionModel(nn.Module):
         bottom = skips[-1]
         new: State = {}
         if self.context_encoder is not None:
-            volumes, fines, new = self._context_step(frame, state)
+            volumes, fines, shift, new = self._context_step(frame, state)
             for volume in volumes:
                 bottom = bottom + volume.to(bottom.dtype)
             for fine in fines:
                 skips = _add_fine(skips, fine)
+            if shift is not None:
+                skips = _add_shift(skips, shift)
         new["t"] = state["t"] + 1
         return self.decoder(bottom, skips, frame), new
 
@@ -614,7 +645,7 @@ class CompletionModel(nn.Module):
         self._check_state(state, batch=frame.shape[0])
         new: State = {}
         if self.context_encoder is not None:
-            new = self._context_step(frame, state)[2]
+            new = self._context_step(frame, state)[-1]
         new["t"] = state["t"] + 1
         return new
 
@@ -671,6 +702,11 @@ def _fine_tokens(
 def _add_fine(skips: list[Tensor], fine: Tensor) -> list[Tensor]:
     """The local tower's skips with ``fine`` added to the next-finer level's (a new list)."""
     return [*skips[:-2], skips[-2] + fine.to(skips[-2].dtype), skips[-1]]
+
+
+def _add_shift(skips: list[Tensor], shift: Tensor) -> list[Tensor]:
+    """The local tower's skips with the shift memory's read added to the finest level's."""
+    return [skips[0] + shift.to(skips[0].dtype), *skips[1:]]
 
 
 def _full_precision(x: Tensor):

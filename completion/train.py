@@ -276,7 +276,7 @@ def view_weights(views: int, late: float) -> torch.Tensor:
     return ramp / ramp.mean()
 
 
-PLACE_PATH_PREFIXES = ("place_bridge.", "place_tower.")
+PLACE_PATH_PREFIXES = ("place_bridge.", "place_tower.", "shift_memory.")
 
 
 def param_groups(model: torch.nn.Module, lr: float, place_lr: float | None) -> list[dict]:

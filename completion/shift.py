@@ -1,0 +1,134 @@
+"""The shift memory: a constant-size memory that carries a shape along the image's x axis by any
+fraction of a cell (``ModelConfig.shift_heads``).
+
+The place path moves features between the 5³ places of the bottleneck (8 voxels a side), and a
+transport rounded to whole places is worth nothing on slide behind (model card, the
+``completion.headroom --shift-quantum`` bounds): the slider moves 15–26 voxels and lands up to
+half a place off. Here each view writes its finest context level ((G/2)³ cells of 2 voxels) into
+one memory per row (j, k) along i (camera x, the image's horizontal) as a Fourier series along i,
+in the frame of a reference position that the view predicts (a soft argmax over its cells, so any
+real number); the current view reads the series back in the frame of its own predicted reference.
+What view s wrote at cell i reaches view t at i + p_read(t) − p_write(s): a phase per frequency,
+so a move by any fraction of a cell, learned end to end. Per head: what to write (values times a
+sigmoid gate per cell), where the view stands (two soft argmaxes: write and read), and a gain per
+frequency (a Hann taper at the start). The read is divided by 1 + the gate mass written so far
+in its row, and added to the decoder's (G/2)³ skip by a 1×1×1 conv that starts at zero, so a
+checkpoint without this memory warm-starts it exactly.
+
+Memory per head: (Cv, M, n, n) complex numbers (two real tensors) and (n, n) written mass, n =
+G/2, M frequencies of period 2n (so a shape moved by up to n cells does not wrap onto itself),
+whatever the number of views. Shapes: N frames, B sequences, L views, H heads, Cv channels.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from torch import Tensor, nn
+
+State = dict[str, Tensor]
+PREFIX = "shift."
+
+
+def fourier_write(content: Tensor, p: Tensor, omega: Tensor) -> tuple[Tensor, Tensor]:
+    """content (N, H, C, n, n, n) along i, j, k; p (N, H) reference along i; omega (M,) the
+    frequencies -> the series of content(i) · exp(−i ω_m (i − p)), real and imaginary parts,
+    each (N, H, C, M, n, n)."""
+    cos, sin = _tables(omega, content.shape[3])
+    a = torch.einsum("nhcijk,mi->nhcmjk", content, cos)  # Σ content · cos(ω i)
+    b = -torch.einsum("nhcijk,mi->nhcmjk", content, sin)  # Σ content · −sin(ω i)
+    return _turn(a, b, p, omega)
+
+
+def fourier_read(re: Tensor, im: Tensor, p: Tensor, gain: Tensor, omega: Tensor,
+                 n: int) -> Tensor:
+    """The series (N, H, C, M, n, n) read in the frame of p (N, H) at the n cells along i:
+    Σ_m gain_m · Re(S_m · exp(i ω_m (i − p))) -> (N, H, C, n, n, n). gain (H, M)."""
+    cos, sin = _tables(omega, n)
+    re, im = _turn(re, im, -p, omega)
+    g = gain[None, :, None, :, None, None]
+    return (torch.einsum("nhcmjk,mi->nhcijk", re * g, cos)
+            - torch.einsum("nhcmjk,mi->nhcijk", im * g, sin))
+
+
+def _tables(omega: Tensor, n: int) -> tuple[Tensor, Tensor]:
+    """cos and sin of ω_m · i, (M, n)."""
+    angle = omega[:, None] * torch.arange(n, device=omega.device, dtype=omega.dtype)
+    return torch.cos(angle), torch.sin(angle)
+
+
+def _turn(re: Tensor, im: Tensor, p: Tensor, omega: Tensor) -> tuple[Tensor, Tensor]:
+    """(re + i·im) · exp(i ω_m p): the series moved into the frame of p (N, H)."""
+    phase = (p[..., None] * omega)[:, :, None, :, None, None]  # (N, H, 1, M, 1, 1)
+    c, s = torch.cos(phase), torch.sin(phase)
+    return re * c - im * s, re * s + im * c
+
+
+class ShiftMemory(nn.Module):
+    """The memory of the module docstring, over the context encoder's finest level."""
+
+    def __init__(self, config) -> None:  # config: completion.model.ModelConfig
+        super().__init__()
+        c0 = config.channels[0]
+        self.n = n = config.grid_size // 2
+        self.heads, self.channels = config.shift_heads, config.shift_channels
+        self.freqs = m = config.shift_freqs or n
+        self.value = nn.Conv3d(c0, self.heads * self.channels, 1)
+        self.gate = nn.Conv3d(c0, self.heads, 1)
+        self.where = nn.Conv3d(c0, 2 * self.heads, 1)  # write and read reference logits
+        nn.init.zeros_(self.where.weight)  # uniform at first: every view the same reference
+        nn.init.zeros_(self.where.bias)
+        self.out = nn.Conv3d(self.heads * self.channels, c0, 1)
+        nn.init.zeros_(self.out.weight)
+        nn.init.zeros_(self.out.bias)
+        k = torch.arange(m, dtype=torch.float64)
+        taper = 0.5 * (1 + torch.cos(math.pi * k / m))  # Hann: little ringing
+        gain = torch.where(k == 0, 1.0, 2.0) / (2 * n) * taper
+        self.gain = nn.Parameter(gain.float().repeat(self.heads, 1))  # (H, M)
+        # ω_m = π m / n: period 2n cells, so a shape moved by up to n cells does not wrap
+        self.register_buffer("omega", (math.pi * k / n).float(), persistent=False)
+
+    def _view(self, level: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
+        """One frame's part: level (N, C0, n, n, n) -> series re, im (N, H, Cv, M, n, n), gate
+        mass per row (N, H, n, n), and the read reference (N, H)."""
+        x = level.float()
+        heads, n = self.heads, self.n
+        gate = torch.sigmoid(self.gate(x))  # (N, H, n, n, n)
+        value = self.value(x).view(x.shape[0], heads, self.channels, n, n, n)
+        where = torch.softmax(self.where(x).flatten(2), dim=-1)  # (N, 2H, n³) over the cells
+        i = torch.arange(n, device=x.device, dtype=x.dtype).repeat_interleave(n * n)
+        p = where @ i  # (N, 2H): the expected i of each soft argmax
+        re, im = fourier_write(value * gate[:, :, None], p[:, :heads], self.omega)
+        return re, im, gate.sum(dim=2), p[:, heads:]
+
+    def _read(self, re: Tensor, im: Tensor, mass: Tensor, p_read: Tensor) -> Tensor:
+        y = fourier_read(re, im, p_read, self.gain, self.omega, self.n)
+        y = y / (1 + mass[:, :, None, None])  # (N, H, Cv, n, n, n)
+        return self.out(y.flatten(1, 2))
+
+    def forward(self, level: Tensor, batch: tuple[int, int]) -> Tensor:
+        """Parallel: the finest context level of every frame (B·L, C0, n, n, n), in (B, L)
+        order -> what each view reads, (B·L, C0, n, n, n), causal over views."""
+        with torch.autocast(device_type=level.device.type, enabled=False):
+            re, im, mass, p_read = self._view(level)
+            b, views = batch
+            re, im, mass = (t.view(b, views, *t.shape[1:]).cumsum(1).flatten(0, 1)
+                            for t in (re, im, mass))
+            return self._read(re, im, mass, p_read)
+
+    def init_state(self, batch: int, *, device: torch.device) -> State:
+        n, shape = self.n, (batch, self.heads, self.channels, self.freqs, self.n, self.n)
+        return {f"{PREFIX}re": torch.zeros(shape, device=device),
+                f"{PREFIX}im": torch.zeros(shape, device=device),
+                f"{PREFIX}mass": torch.zeros(batch, self.heads, n, n, device=device)}
+
+    def step(self, level: Tensor, state: State) -> tuple[Tensor, State]:
+        """Streaming: one view's finest context level (B, C0, n, n, n) -> what it reads, and the
+        new state entries."""
+        with torch.autocast(device_type=level.device.type, enabled=False):
+            re, im, mass, p_read = self._view(level)
+            re, im = state[f"{PREFIX}re"] + re, state[f"{PREFIX}im"] + im
+            mass = state[f"{PREFIX}mass"] + mass
+            new = {f"{PREFIX}re": re, f"{PREFIX}im": im, f"{PREFIX}mass": mass}
+            return self._read(re, im, mass, p_read), new
