@@ -19,6 +19,8 @@ memory must put the shape down for it to pay.
 Two more columns say what a model draws where the slider is: "slider precision", the share of its
 predicted voxels within three voxels of the slider (the front object's voxels left out) that are
 the slider's, and "slider |dx|", how far along x (voxels) their centre lies from the slider's.
+For a model with a shift memory (``ModelConfig.shift_heads``) a line per model says how far
+from the slider's true move along x its best head puts what the first view wrote.
 
     python -m completion.headroom      # shipped single_view and mvp, test split, seed 0
     python -m completion.headroom --models mvp,runs/w/mvp.pt --split val --count 5
@@ -46,16 +48,34 @@ NEAR = 2  # voxels: how far from the slider's truth a predicted voxel still coun
 AROUND = 3  # voxels: the neighbourhood of the slider whose predicted voxels the precision judges
 
 
-def slider_shift(seq, view: int) -> np.ndarray:
-    """(3,) int: the voxels by which the sliding object moved between view 0 and ``view``, each
-    in its own view's grid (the grids share a pitch and axes: the camera of slide behind stands
-    still)."""
+def slider_move(seq, view: int) -> np.ndarray:
+    """(3,) float: the voxels by which the sliding object moved between view 0 and ``view``,
+    each in its own view's grid (the grids share a pitch and axes: the camera of slide behind
+    stands still)."""
     where = []
     for v in (0, view):
         centre = np.asarray(seq.meta["object_to_world"][v][SLIDING], dtype=np.float64)[:, 3]
         in_camera = np.linalg.solve(seq.camera_to_world[v], centre)[:3]
         where.append(grid.points_to_indices(in_camera[None], seq.grid_to_camera[v], rounded=False))
-    return np.round(where[1][0] - where[0][0]).astype(int)
+    return where[1][0] - where[0][0]
+
+
+def slider_shift(seq, view: int) -> np.ndarray:
+    """(3,) int: :func:`slider_move` rounded to whole voxels."""
+    return np.round(slider_move(seq, view)).astype(int)
+
+
+def shift_move_error(model: torch.nn.Module, x: torch.Tensor, move_x: np.ndarray) -> np.ndarray:
+    """(H, L): per head of the model's shift memory (``ModelConfig.shift_heads``) and view v,
+    |p_read(v) − p_write(0) − move_x[v]| in voxels: how far from the slider's true move along x
+    the memory puts what the first view wrote. (0, L) for a model without one."""
+    memory = getattr(model, "shift_memory", None)
+    if memory is None:
+        return np.zeros((0, len(move_x)))
+    with torch.no_grad():
+        level = model.context_encoder(x.flatten(0, 1))[0]
+        p_write, p_read = (2 * p.T.double().numpy() for p in memory.references(level))
+    return np.abs(p_read - p_write[:, :1] - np.asarray(move_x)[None])  # 2 voxels a cell
 
 
 def quantised(shift: np.ndarray, quantum: int) -> np.ndarray:
@@ -96,9 +116,9 @@ def headroom(
     ("sliding_offset_x", NaN where it predicts none there); and per view the sliding object's
     share of the target."""
     keys = ("alone", "with_sliding_truth", "own_slider_moved", "sliding_recall",
-            "sliding_precision", "sliding_offset_x")
+            "sliding_precision", "sliding_offset_x", "shift_move_error")
     rows = {name: {k: [] for k in keys} for name in models}
-    share = []
+    share, still = [], []
     for index in range(count):
         seq = make_sequence("slide_behind", split, index, seed, views=views)
         x = torch.from_numpy(seq.inputs[None].astype(np.float32))
@@ -113,6 +133,8 @@ def headroom(
         around = [ndimage.binary_dilation(s, iterations=AROUND) & ~(t & ~s)
                   for s, t in zip(sliding, seq.targets, strict=True)]
         shifts = [quantised(slider_shift(seq, v), shift_quantum) for v in range(len(seq))]
+        move_x = [slider_move(seq, v)[0] for v in range(len(seq))]
+        still.append(np.abs(move_x))
         for name, model in models.items():
             with torch.no_grad():
                 pred = torch.sigmoid(model(x))[0].numpy() >= getattr(model, "threshold", 0.5)
@@ -128,12 +150,14 @@ def headroom(
                 [(d & s).sum() / max(d.sum(), 1) for d, s in zip(drawn, sliding, strict=True)])
             rows[name]["sliding_offset_x"].append([_offset_x(d, s) for d, s in
                                                    zip(drawn, sliding, strict=True)])
+            rows[name]["shift_move_error"].append(shift_move_error(model, x, move_x))
     per_view = {
         name: {k: _mean_over_sequences(v).round(4).tolist() for k, v in r.items()}
         for name, r in rows.items()
     }
     return {"split": split, "count": count, "seed": seed, "shift_quantum": shift_quantum,
             "per_view": per_view,
+            "slider_move_x": np.mean(still, axis=0).round(4).tolist(),
             "sliding_share": np.mean(share, axis=0).round(4).tolist()}  # fmt: skip
 
 
@@ -193,6 +217,15 @@ def main(argv: list[str] | None = None) -> int:
               f"    {prec.mean():.3f} ({prec[-6:].mean():.3f})"
               f"  {_mean_over_sequences(dx):.2f} ({_mean_over_sequences(dx[-6:]):.2f})")
     print(f"sliding object's share of the target: {np.mean(out['sliding_share']):.3f}")
+    still = np.array(out["slider_move_x"])
+    for name, r in out["per_view"].items():
+        error = np.array(r["shift_move_error"])  # (H, L)
+        if error.size:
+            h = int(error[:, -6:].mean(1).argmin())
+            print(f"{name}: shift memory head {h} (of {len(error)}) moves what the first view "
+                  f"wrote to within {error[h, -6:].mean():.2f} voxels of the slider's move along "
+                  f"x in the last six views ({error[h].mean():.2f} over all); standing still: "
+                  f"{still[-6:].mean():.2f} ({still.mean():.2f})")
     return 0
 
 

@@ -96,11 +96,18 @@ class ShiftMemory(nn.Module):
         heads, n = self.heads, self.n
         gate = torch.sigmoid(self.gate(x))  # (N, H, n, n, n)
         value = self.value(x).view(x.shape[0], heads, self.channels, n, n, n)
-        where = torch.softmax(self.where(x).flatten(2), dim=-1)  # (N, 2H, n³) over the cells
-        i = torch.arange(n, device=x.device, dtype=x.dtype).repeat_interleave(n * n)
-        p = where @ i  # (N, 2H): the expected i of each soft argmax
-        re, im = fourier_write(value * gate[:, :, None], p[:, :heads], self.omega)
-        return re, im, gate.sum(dim=2), p[:, heads:]
+        p_write, p_read = self.references(x)
+        re, im = fourier_write(value * gate[:, :, None], p_write, self.omega)
+        return re, im, gate.sum(dim=2), p_read
+
+    def references(self, level: Tensor) -> tuple[Tensor, Tensor]:
+        """Where each frame stands along i, in cells of its level (N, C0, n, n, n): the write
+        and the read reference, each (N, H), the expected i of a soft argmax over the cells."""
+        n = self.n
+        where = torch.softmax(self.where(level.float()).flatten(2), dim=-1)  # (N, 2H, n³)
+        i = torch.arange(n, device=level.device, dtype=torch.float32).repeat_interleave(n * n)
+        p = where @ i
+        return p[:, : self.heads], p[:, self.heads :]
 
     def _read(self, re: Tensor, im: Tensor, mass: Tensor, p_read: Tensor) -> Tensor:
         y = fourier_read(re, im, p_read, self.gain, self.omega, self.n)

@@ -100,3 +100,22 @@ def test_shift_quantum_rounds_the_slider_translation_and_rejects_zero(capsys):
     with pytest.raises(SystemExit):
         main(["--models", "single_view", "--shift-quantum", "0"])
     assert "--shift-quantum" in capsys.readouterr().err
+
+
+def test_shift_move_error_is_the_slider_move_for_a_memory_that_stands_still(capsys, tmp_path):
+    from test_model import tiny_config
+
+    from completion.model import build_model, save_checkpoint
+
+    # a fresh shift memory: its reference soft argmaxes are uniform, so every view stands at the
+    # same place and what view 0 wrote stays put; its error is the slider's whole move
+    fresh = build_model(tiny_config("mvp", shift_heads=2, shift_channels=2)).eval()
+    out = headroom({"fresh": fresh, "surface": _Surface()}, split="test", count=2, views=6)
+    error = np.array(out["per_view"]["fresh"]["shift_move_error"])
+    assert error.shape == (2, 6)
+    assert np.allclose(error, np.array(out["slider_move_x"])[None], atol=1e-3)
+    assert max(out["slider_move_x"]) > 4 and out["slider_move_x"][0] == 0
+    assert out["per_view"]["surface"]["shift_move_error"] == []  # no shift memory, no figure
+    save_checkpoint(fresh, tmp_path / "fresh.pt")
+    assert main(["--models", str(tmp_path / "fresh.pt"), "--count", "1"]) == 0
+    assert "shift memory head" in capsys.readouterr().out
