@@ -7,7 +7,8 @@ transport rounded to whole places is worth nothing on slide behind (model card, 
 half a place off. Here each view writes its finest context level ((G/2)³ cells of 2 voxels) into
 one memory per row (j, k) along i (camera x, the image's horizontal) as a Fourier series along i,
 in the frame of a reference position that the view predicts (a soft argmax over its cells, so any
-real number); the current view reads the series back in the frame of its own predicted reference.
+real number, from the cell's features and coordinates, so that it can pick out the object behind);
+the current view reads the series back in the frame of its own predicted reference.
 What view s wrote at cell i reaches view t at i + p_read(t) − p_write(s): a phase per frequency,
 so a move by any fraction of a cell, learned end to end. Per head: what to write (values times a
 sigmoid gate per cell), where the view stands (two soft argmaxes: write and read), and a gain per
@@ -75,8 +76,12 @@ class ShiftMemory(nn.Module):
         self.heads, self.channels = config.shift_heads, config.shift_channels
         self.freqs = m = config.shift_freqs or n
         self.value = nn.Conv3d(c0, self.heads * self.channels, 1)
-        self.gate = nn.Conv3d(c0, self.heads, 1)
-        self.where = nn.Conv3d(c0, 2 * self.heads, 1)  # write and read reference logits
+        # what to write and where a view stands depend on where a cell is, too (the object behind
+        # is further away): a per-cell layer over the features and the cell's coordinates
+        hidden = 2 * c0
+        self.cell = nn.Sequential(nn.Conv3d(c0 + 3, hidden, 1), nn.ReLU())
+        self.gate = nn.Conv3d(hidden, self.heads, 1)
+        self.where = nn.Conv3d(hidden, 2 * self.heads, 1)  # write and read reference logits
         nn.init.zeros_(self.where.weight)  # uniform at first: every view the same reference
         nn.init.zeros_(self.where.bias)
         self.out = nn.Conv3d(self.heads * self.channels, c0, 1)
@@ -88,26 +93,37 @@ class ShiftMemory(nn.Module):
         self.gain = nn.Parameter(gain.float().repeat(self.heads, 1))  # (H, M)
         # ω_m = π m / n: period 2n cells, so a shape moved by up to n cells does not wrap
         self.register_buffer("omega", (math.pi * k / n).float(), persistent=False)
+        axis = torch.linspace(-1, 1, n)
+        coords = torch.stack(torch.meshgrid(axis, axis, axis, indexing="ij"))  # (3, n, n, n)
+        self.register_buffer("coords", coords, persistent=False)
 
     def _view(self, level: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
         """One frame's part: level (N, C0, n, n, n) -> series re, im (N, H, Cv, M, n, n), gate
         mass per row (N, H, n, n), and the read reference (N, H)."""
         x = level.float()
         heads, n = self.heads, self.n
-        gate = torch.sigmoid(self.gate(x))  # (N, H, n, n, n)
+        cells = self._cells(x)
+        gate = torch.sigmoid(self.gate(cells))  # (N, H, n, n, n)
         value = self.value(x).view(x.shape[0], heads, self.channels, n, n, n)
-        p_write, p_read = self.references(x)
+        p_write, p_read = self._references(cells)
         re, im = fourier_write(value * gate[:, :, None], p_write, self.omega)
         return re, im, gate.sum(dim=2), p_read
+
+    def _cells(self, x: Tensor) -> Tensor:
+        coords = self.coords.expand(x.shape[0], -1, -1, -1, -1)
+        return self.cell(torch.cat((x, coords), dim=1))
+
+    def _references(self, cells: Tensor) -> tuple[Tensor, Tensor]:
+        n = self.n
+        where = torch.softmax(self.where(cells).flatten(2), dim=-1)  # (N, 2H, n³)
+        i = torch.arange(n, device=cells.device, dtype=torch.float32).repeat_interleave(n * n)
+        p = where @ i
+        return p[:, : self.heads], p[:, self.heads :]
 
     def references(self, level: Tensor) -> tuple[Tensor, Tensor]:
         """Where each frame stands along i, in cells of its level (N, C0, n, n, n): the write
         and the read reference, each (N, H), the expected i of a soft argmax over the cells."""
-        n = self.n
-        where = torch.softmax(self.where(level.float()).flatten(2), dim=-1)  # (N, 2H, n³)
-        i = torch.arange(n, device=level.device, dtype=torch.float32).repeat_interleave(n * n)
-        p = where @ i
-        return p[:, : self.heads], p[:, self.heads :]
+        return self._references(self._cells(level.float()))
 
     def _read(self, re: Tensor, im: Tensor, mass: Tensor, p_read: Tensor) -> Tensor:
         y = fourier_read(re, im, p_read, self.gain, self.omega, self.n)
