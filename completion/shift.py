@@ -6,15 +6,17 @@ transport rounded to whole places is worth nothing on slide behind (model card, 
 ``completion.headroom --shift-quantum`` bounds): the slider moves 15–26 voxels and lands up to
 half a place off. Here each view writes its finest context level ((G/2)³ cells of 2 voxels) into
 one memory per row (j, k) along i (camera x, the image's horizontal) as a Fourier series along i,
-in the frame of a reference position that the view predicts (a soft argmax over its cells, so any
-real number, from the cell's features and coordinates, so that it can pick out the object behind);
-the current view reads the series back in the frame of its own predicted reference.
-What view s wrote at cell i reaches view t at i + p_read(t) − p_write(s): a phase per frequency,
-so a move by any fraction of a cell, learned end to end. Per head: what to write (values times a
-sigmoid gate per cell), where the view stands (two soft argmaxes: write and read), and a gain per
-frequency (a Hann taper at the start). The read is divided by 1 + the gate mass written so far
-in its row, and added to the decoder's (G/2)³ skip by a 1×1×1 conv that starts at zero, so a
-checkpoint without this memory warm-starts it exactly.
+in the frame of where the view stands: a distribution over its cells along i (a softmax over its
+cells from their features and coordinates, so that it can pick out the object behind). The
+current view reads the series back in the frame of where it stands. What view s wrote at cell i
+reaches view t at i + x_t − x_s, x_s and x_t drawn from the two distributions: for point-like
+ones a phase per frequency, so a move by any fraction of a cell. The distributions blend every
+move at first (uniform), so a far move that pays gets a gradient, where a single mean position
+would be stuck (a shape moved a little does not reach a target 10 cells away). Per head: what to
+write (values times a sigmoid gate per cell), where the view stands to write and to read, and a
+gain per frequency (a Hann taper at the start). The read is divided by 1 + the gate mass
+written so far in its row, and added to the decoder's (G/2)³ skip by a 1×1×1 conv that starts
+at zero, so a checkpoint without this memory warm-starts it exactly.
 
 Memory per head: (Cv, M, n, n) complex numbers (two real tensors) and (n, n) written mass, n =
 G/2, M frequencies of period 2n (so a shape moved by up to n cells does not wrap onto itself),
@@ -32,22 +34,42 @@ State = dict[str, Tensor]
 PREFIX = "shift."
 
 
-def fourier_write(content: Tensor, p: Tensor, omega: Tensor) -> tuple[Tensor, Tensor]:
-    """content (N, H, C, n, n, n) along i, j, k; p (N, H) reference along i; omega (M,) the
-    frequencies -> the series of content(i) · exp(−i ω_m (i − p)), real and imaginary parts,
-    each (N, H, C, M, n, n)."""
+# E[exp(i ω_m x)] over where a view stands x, real and imaginary parts, each (N, H, M)
+Frame = tuple[Tensor, Tensor]
+
+
+def frame_at(p: Tensor, omega: Tensor) -> Frame:
+    """The frame of a view that stands exactly at p (N, H) along i."""
+    angle = p[..., None] * omega
+    return torch.cos(angle), torch.sin(angle)
+
+
+def frame_of(weights: Tensor, omega: Tensor) -> Frame:
+    """The frame of a view that stands at cell i with probability weights[..., i] (N, H, n): the
+    characteristic function of that distribution. A move between two such frames is the blend
+    of every move between their cells, so each cell's weight gets a gradient from its own move
+    however far it is (a mean position would get one only from moves within the shape's reach)."""
+    cos, sin = _tables(omega, weights.shape[-1])
+    return weights @ cos.T, weights @ sin.T
+
+
+def fourier_write(content: Tensor, frame: Frame, omega: Tensor) -> tuple[Tensor, Tensor]:
+    """content (N, H, C, n, n, n) along i, j, k; the writer's frame; omega (M,) the frequencies
+    -> the series of content(i) · exp(−i ω_m (i − x)) over the writer's x, real and imaginary
+    parts, each (N, H, C, M, n, n)."""
     cos, sin = _tables(omega, content.shape[3])
     a = torch.einsum("nhcijk,mi->nhcmjk", content, cos)  # Σ content · cos(ω i)
     b = -torch.einsum("nhcijk,mi->nhcmjk", content, sin)  # Σ content · −sin(ω i)
-    return _turn(a, b, p, omega)
+    return _turn(a, b, frame)
 
 
-def fourier_read(re: Tensor, im: Tensor, p: Tensor, gain: Tensor, omega: Tensor,
+def fourier_read(re: Tensor, im: Tensor, frame: Frame, gain: Tensor, omega: Tensor,
                  n: int) -> Tensor:
-    """The series (N, H, C, M, n, n) read in the frame of p (N, H) at the n cells along i:
-    Σ_m gain_m · Re(S_m · exp(i ω_m (i − p))) -> (N, H, C, n, n, n). gain (H, M)."""
+    """The series (N, H, C, M, n, n) read in the reader's frame at the n cells along i:
+    Σ_m gain_m · Re(S_m · exp(i ω_m (i − x))) over the reader's x -> (N, H, C, n, n, n).
+    gain (H, M)."""
     cos, sin = _tables(omega, n)
-    re, im = _turn(re, im, -p, omega)
+    re, im = _turn(re, im, (frame[0], -frame[1]))
     g = gain[None, :, None, :, None, None]
     return (torch.einsum("nhcmjk,mi->nhcijk", re * g, cos)
             - torch.einsum("nhcmjk,mi->nhcijk", im * g, sin))
@@ -59,10 +81,9 @@ def _tables(omega: Tensor, n: int) -> tuple[Tensor, Tensor]:
     return torch.cos(angle), torch.sin(angle)
 
 
-def _turn(re: Tensor, im: Tensor, p: Tensor, omega: Tensor) -> tuple[Tensor, Tensor]:
-    """(re + i·im) · exp(i ω_m p): the series moved into the frame of p (N, H)."""
-    phase = (p[..., None] * omega)[:, :, None, :, None, None]  # (N, H, 1, M, 1, 1)
-    c, s = torch.cos(phase), torch.sin(phase)
+def _turn(re: Tensor, im: Tensor, frame: Frame) -> tuple[Tensor, Tensor]:
+    """(re + i·im) · frame, the frame (N, H, M) broadcast over channels and rows."""
+    c, s = (f[:, :, None, :, None, None] for f in frame)
     return re * c - im * s, re * s + im * c
 
 
@@ -97,36 +118,38 @@ class ShiftMemory(nn.Module):
         coords = torch.stack(torch.meshgrid(axis, axis, axis, indexing="ij"))  # (3, n, n, n)
         self.register_buffer("coords", coords, persistent=False)
 
-    def _view(self, level: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
+    def _view(self, level: Tensor) -> tuple[Tensor, Tensor, Tensor, Frame]:
         """One frame's part: level (N, C0, n, n, n) -> series re, im (N, H, Cv, M, n, n), gate
-        mass per row (N, H, n, n), and the read reference (N, H)."""
+        mass per row (N, H, n, n), and the frame it reads in."""
         x = level.float()
         heads, n = self.heads, self.n
         cells = self._cells(x)
         gate = torch.sigmoid(self.gate(cells))  # (N, H, n, n, n)
         value = self.value(x).view(x.shape[0], heads, self.channels, n, n, n)
-        p_write, p_read = self._references(cells)
-        re, im = fourier_write(value * gate[:, :, None], p_write, self.omega)
-        return re, im, gate.sum(dim=2), p_read
+        where = self._where(cells)
+        re, im = fourier_write(value * gate[:, :, None], frame_of(where[:, :heads], self.omega),
+                               self.omega)
+        return re, im, gate.sum(dim=2), frame_of(where[:, heads:], self.omega)
 
     def _cells(self, x: Tensor) -> Tensor:
         coords = self.coords.expand(x.shape[0], -1, -1, -1, -1)
         return self.cell(torch.cat((x, coords), dim=1))
 
-    def _references(self, cells: Tensor) -> tuple[Tensor, Tensor]:
-        n = self.n
-        where = torch.softmax(self.where(cells).flatten(2), dim=-1)  # (N, 2H, n³)
-        i = torch.arange(n, device=cells.device, dtype=torch.float32).repeat_interleave(n * n)
-        p = where @ i
-        return p[:, : self.heads], p[:, self.heads :]
+    def _where(self, cells: Tensor) -> Tensor:
+        """(N, 2H, n): where the view stands along i to write (first H) and to read, a softmax
+        over its cells summed over j and k."""
+        where = torch.softmax(self.where(cells).flatten(2), dim=-1)  # (N, 2H, n³), i slowest
+        return where.view(*where.shape[:2], self.n, -1).sum(-1)
 
     def references(self, level: Tensor) -> tuple[Tensor, Tensor]:
-        """Where each frame stands along i, in cells of its level (N, C0, n, n, n): the write
-        and the read reference, each (N, H), the expected i of a soft argmax over the cells."""
-        return self._references(self._cells(level.float()))
+        """Where each frame stands along i on average, in cells of its level (N, C0, n, n, n):
+        the write and the read reference, each (N, H)."""
+        where = self._where(self._cells(level.float()))
+        p = where @ torch.arange(self.n, device=where.device, dtype=where.dtype)
+        return p[:, : self.heads], p[:, self.heads :]
 
-    def _read(self, re: Tensor, im: Tensor, mass: Tensor, p_read: Tensor) -> Tensor:
-        y = fourier_read(re, im, p_read, self.gain, self.omega, self.n)
+    def _read(self, re: Tensor, im: Tensor, mass: Tensor, frame: Frame) -> Tensor:
+        y = fourier_read(re, im, frame, self.gain, self.omega, self.n)
         y = y / (1 + mass[:, :, None, None])  # (N, H, Cv, n, n, n)
         return self.out(y.flatten(1, 2))
 
@@ -134,11 +157,11 @@ class ShiftMemory(nn.Module):
         """Parallel: the finest context level of every frame (B·L, C0, n, n, n), in (B, L)
         order -> what each view reads, (B·L, C0, n, n, n), causal over views."""
         with torch.autocast(device_type=level.device.type, enabled=False):
-            re, im, mass, p_read = self._view(level)
+            re, im, mass, frame = self._view(level)
             b, views = batch
             re, im, mass = (t.view(b, views, *t.shape[1:]).cumsum(1).flatten(0, 1)
                             for t in (re, im, mass))
-            return self._read(re, im, mass, p_read)
+            return self._read(re, im, mass, frame)
 
     def init_state(self, batch: int, *, device: torch.device) -> State:
         n, shape = self.n, (batch, self.heads, self.channels, self.freqs, self.n, self.n)
@@ -150,8 +173,8 @@ class ShiftMemory(nn.Module):
         """Streaming: one view's finest context level (B, C0, n, n, n) -> what it reads, and the
         new state entries."""
         with torch.autocast(device_type=level.device.type, enabled=False):
-            re, im, mass, p_read = self._view(level)
+            re, im, mass, frame = self._view(level)
             re, im = state[f"{PREFIX}re"] + re, state[f"{PREFIX}im"] + im
             mass = state[f"{PREFIX}mass"] + mass
             new = {f"{PREFIX}re": re, f"{PREFIX}im": im, f"{PREFIX}mass": mass}
-            return self._read(re, im, mass, p_read), new
+            return self._read(re, im, mass, frame), new

@@ -12,7 +12,7 @@ import torch
 from test_model import ATOL, random_views, scrambled, tiny_config
 
 from completion.model import ModelConfig, build_model, save_checkpoint, state_nbytes
-from completion.shift import fourier_read, fourier_write
+from completion.shift import fourier_read, fourier_write, frame_at, frame_of
 from completion.train import param_groups, warm_start
 
 N = 20  # cells along i at the finest level of a 40³ grid
@@ -25,8 +25,9 @@ def _moved(i0: int, p_write: float, p_read: float) -> torch.Tensor:
     k = torch.arange(N, dtype=torch.float32)
     omega = math.pi * k / N
     gain = (torch.where(k == 0, 1.0, 2.0) / (2 * N) * 0.5 * (1 + torch.cos(math.pi * k / N)))
-    re, im = fourier_write(content, torch.tensor([[p_write]]), omega)
-    return fourier_read(re, im, torch.tensor([[p_read]]), gain[None], omega, N)[0, 0, 0, :, 0, 0]
+    re, im = fourier_write(content, frame_at(torch.tensor([[p_write]]), omega), omega)
+    return fourier_read(re, im, frame_at(torch.tensor([[p_read]]), omega), gain[None], omega,
+                        N)[0, 0, 0, :, 0, 0]
 
 
 @pytest.mark.parametrize("shift", [3.0, 3.5, -2.25, 0.0])
@@ -44,6 +45,27 @@ def test_a_unit_comes_back_moved_by_the_difference_of_the_references(shift: floa
 
 def test_only_the_difference_of_the_references_matters() -> None:
     torch.testing.assert_close(_moved(6, 2.0, 5.5), _moved(6, 9.0, 12.5), atol=1e-5, rtol=0)
+
+
+def test_a_frame_of_one_cell_is_that_cell_and_a_spread_frame_blends_the_moves() -> None:
+    k = torch.arange(N, dtype=torch.float32)
+    omega = math.pi * k / N
+    one = torch.zeros(1, 1, N)
+    one[0, 0, 7] = 1.0
+    for a, b in zip(frame_of(one, omega), frame_at(torch.tensor([[7.0]]), omega), strict=True):
+        torch.testing.assert_close(a, b, atol=1e-6, rtol=0)
+    # standing at 2 or 12 with even odds: a unit written from 2 arrives half moved by 0 cells,
+    # half by 10
+    two = torch.zeros(1, 1, N)
+    two[0, 0, 2] = two[0, 0, 12] = 0.5
+    gain = torch.where(k == 0, 1.0, 2.0) / (2 * N) * 0.5 * (1 + torch.cos(math.pi * k / N))
+    content = torch.zeros(1, 1, 1, N, 1, 1)
+    content[0, 0, 0, 4] = 1.0
+    re, im = fourier_write(content, frame_at(torch.tensor([[2.0]]), omega), omega)
+    profile = fourier_read(re, im, frame_of(two, omega), gain[None], omega, N)[0, 0, 0, :, 0, 0]
+    assert float(profile[4]) == pytest.approx(float(profile[14]), abs=1e-5)
+    assert float(profile[4]) > 0.1
+    assert float(profile[8:11].abs().max()) < 0.02
 
 
 @torch.no_grad()
