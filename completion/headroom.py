@@ -73,8 +73,9 @@ def shift_move_error(model: torch.nn.Module, x: torch.Tensor, move_x: np.ndarray
     if memory is None:
         return np.zeros((0, len(move_x)))
     with torch.no_grad():
-        level = model.context_encoder(x.flatten(0, 1))[0]
-        p_write, p_read = (2 * p.T.double().numpy() for p in memory.references(level))
+        frames = x.flatten(0, 1)
+        level = model.context_encoder(frames)[0]
+        p_write, p_read = (2 * p.T.double().numpy() for p in memory.references(level, frames))
     return np.abs(p_read - p_write[:, :1] - np.asarray(move_x)[None])  # 2 voxels a cell
 
 

@@ -569,7 +569,7 @@ class CompletionModel(nn.Module):
                 if fine is not None:
                     skips = _add_fine(skips, bridge.fine_volume(fine.flatten(0, 1)))
             if self.shift_memory is not None:
-                skips = _add_shift(skips, self.shift_memory(levels[0], (b, n)))
+                skips = _add_shift(skips, self.shift_memory(levels[0], frames, (b, n)))
         logits = self.decoder(bottom, skips, local_frames)  # (N, G, G, G)
         return logits.view(seq.shape)
 
@@ -597,7 +597,7 @@ class CompletionModel(nn.Module):
             new |= entries
         shift = None
         if self.shift_memory is not None:
-            shift, entries = self.shift_memory.step(levels[0], state)
+            shift, entries = self.shift_memory.step(levels[0], frame, state)
             new |= entries
         return volumes, fines, shift, new
 

@@ -6,8 +6,8 @@ transport rounded to whole places is worth nothing on slide behind (model card, 
 ``completion.headroom --shift-quantum`` bounds): the slider moves 15–26 voxels and lands up to
 half a place off. Here each view writes its finest context level ((G/2)³ cells of 2 voxels) into
 one memory per row (j, k) along i (camera x, the image's horizontal) as a Fourier series along i,
-in the frame of where the view stands: a distribution over its cells along i (a softmax over its
-cells from their features and coordinates, so that it can pick out the object behind). The
+in the frame of where the view stands: a distribution over its cells along i (a softmax over the
+cells it sees, from their features and coordinates, so that it can pick out the object behind). The
 current view reads the series back in the frame of where it stands. What view s wrote at cell i
 reaches view t at i + x_t − x_s, x_s and x_t drawn from the two distributions: for point-like
 ones a phase per frequency, so a move by any fraction of a cell. The distributions blend every
@@ -118,15 +118,16 @@ class ShiftMemory(nn.Module):
         coords = torch.stack(torch.meshgrid(axis, axis, axis, indexing="ij"))  # (3, n, n, n)
         self.register_buffer("coords", coords, persistent=False)
 
-    def _view(self, level: Tensor) -> tuple[Tensor, Tensor, Tensor, Frame]:
-        """One frame's part: level (N, C0, n, n, n) -> series re, im (N, H, Cv, M, n, n), gate
-        mass per row (N, H, n, n), and the frame it reads in."""
+    def _view(self, level: Tensor, frames: Tensor) -> tuple[Tensor, Tensor, Tensor, Frame]:
+        """One frame's part: level (N, C0, n, n, n) and the occupancy it came from (N, G, G, G)
+        -> series re, im (N, H, Cv, M, n, n), gate mass per row (N, H, n, n), and the frame it
+        reads in."""
         x = level.float()
         heads, n = self.heads, self.n
         cells = self._cells(x)
         gate = torch.sigmoid(self.gate(cells))  # (N, H, n, n, n)
         value = self.value(x).view(x.shape[0], heads, self.channels, n, n, n)
-        where = self._where(cells)
+        where = self._where(cells, frames)
         re, im = fourier_write(value * gate[:, :, None], frame_of(where[:, :heads], self.omega),
                                self.omega)
         return re, im, gate.sum(dim=2), frame_of(where[:, heads:], self.omega)
@@ -135,16 +136,20 @@ class ShiftMemory(nn.Module):
         coords = self.coords.expand(x.shape[0], -1, -1, -1, -1)
         return self.cell(torch.cat((x, coords), dim=1))
 
-    def _where(self, cells: Tensor) -> Tensor:
+    def _where(self, cells: Tensor, frames: Tensor) -> Tensor:
         """(N, 2H, n): where the view stands along i to write (first H) and to read, a softmax
-        over its cells summed over j and k."""
-        where = torch.softmax(self.where(cells).flatten(2), dim=-1)  # (N, 2H, n³), i slowest
+        over the cells it sees (any voxel of the cell occupied; every cell for an empty view),
+        summed over j and k. Uniform over what it sees at first."""
+        seen = nn.functional.max_pool3d(frames[:, None].float(), 2).flatten(1) > 0  # (N, n³)
+        unseen = (~seen & seen.any(-1, keepdim=True))[:, None]
+        logits = self.where(cells).flatten(2).masked_fill(unseen, -1e4)  # (N, 2H, n³)
+        where = torch.softmax(logits, dim=-1)  # i slowest
         return where.view(*where.shape[:2], self.n, -1).sum(-1)
 
-    def references(self, level: Tensor) -> tuple[Tensor, Tensor]:
-        """Where each frame stands along i on average, in cells of its level (N, C0, n, n, n):
-        the write and the read reference, each (N, H)."""
-        where = self._where(self._cells(level.float()))
+    def references(self, level: Tensor, frames: Tensor) -> tuple[Tensor, Tensor]:
+        """Where each frame stands along i on average, in cells of its level (N, C0, n, n, n)
+        (frames: the occupancy it came from): the write and the read reference, each (N, H)."""
+        where = self._where(self._cells(level.float()), frames)
         p = where @ torch.arange(self.n, device=where.device, dtype=where.dtype)
         return p[:, : self.heads], p[:, self.heads :]
 
@@ -153,11 +158,12 @@ class ShiftMemory(nn.Module):
         y = y / (1 + mass[:, :, None, None])  # (N, H, Cv, n, n, n)
         return self.out(y.flatten(1, 2))
 
-    def forward(self, level: Tensor, batch: tuple[int, int]) -> Tensor:
-        """Parallel: the finest context level of every frame (B·L, C0, n, n, n), in (B, L)
-        order -> what each view reads, (B·L, C0, n, n, n), causal over views."""
+    def forward(self, level: Tensor, frames: Tensor, batch: tuple[int, int]) -> Tensor:
+        """Parallel: the finest context level of every frame (B·L, C0, n, n, n) and the frames
+        (B·L, G, G, G), in (B, L) order -> what each view reads, (B·L, C0, n, n, n), causal
+        over views."""
         with torch.autocast(device_type=level.device.type, enabled=False):
-            re, im, mass, frame = self._view(level)
+            re, im, mass, frame = self._view(level, frames)
             b, views = batch
             re, im, mass = (t.view(b, views, *t.shape[1:]).cumsum(1).flatten(0, 1)
                             for t in (re, im, mass))
@@ -169,11 +175,11 @@ class ShiftMemory(nn.Module):
                 f"{PREFIX}im": torch.zeros(shape, device=device),
                 f"{PREFIX}mass": torch.zeros(batch, self.heads, n, n, device=device)}
 
-    def step(self, level: Tensor, state: State) -> tuple[Tensor, State]:
-        """Streaming: one view's finest context level (B, C0, n, n, n) -> what it reads, and the
-        new state entries."""
+    def step(self, level: Tensor, frames: Tensor, state: State) -> tuple[Tensor, State]:
+        """Streaming: one view's finest context level (B, C0, n, n, n) and its frame (B, G, G,
+        G) -> what it reads, and the new state entries."""
         with torch.autocast(device_type=level.device.type, enabled=False):
-            re, im, mass, frame = self._view(level)
+            re, im, mass, frame = self._view(level, frames)
             re, im = state[f"{PREFIX}re"] + re, state[f"{PREFIX}im"] + im
             mass = state[f"{PREFIX}mass"] + mass
             new = {f"{PREFIX}re": re, f"{PREFIX}im": im, f"{PREFIX}mass": mass}

@@ -102,20 +102,27 @@ def test_shift_quantum_rounds_the_slider_translation_and_rejects_zero(capsys):
     assert "--shift-quantum" in capsys.readouterr().err
 
 
-def test_shift_move_error_is_the_slider_move_for_a_memory_that_stands_still(capsys, tmp_path):
+def test_shift_move_error_measures_the_memorys_move_against_the_sliders(capsys, tmp_path):
     from test_model import tiny_config
 
+    from completion.headroom import shift_move_error
     from completion.model import build_model, save_checkpoint
 
-    # a fresh shift memory: its reference soft argmaxes are uniform, so every view stands at the
-    # same place and what view 0 wrote stays put; its error is the slider's whole move
+    model = build_model(tiny_config("mvp", shift_heads=2, shift_channels=2)).eval()
+    x = torch.zeros(1, 4, 40, 40, 40)
+    move = np.array([0.0, -3.0, -8.5, -8.5])
+    write = torch.tensor([[4.0, 6.0]]).repeat(4, 1)  # cells, per view and head
+    read = write + torch.tensor([[0.0, 0.0], [-1.5, 0.0], [-4.25, -1.0], [-4.0, -1.0]])
+    model.shift_memory.references = lambda level, frames: (write, read)
+    error = shift_move_error(model, x, move)  # (H, L), voxels: 2 a cell
+    assert np.allclose(error[0], [0.0, 0.0, 0.0, 0.5]) and np.allclose(error[1], [0, 3, 6.5, 6.5])
+    assert shift_move_error(_Surface(), x, move).shape == (0, 4)  # no shift memory, no figure
+
     fresh = build_model(tiny_config("mvp", shift_heads=2, shift_channels=2)).eval()
     out = headroom({"fresh": fresh, "surface": _Surface()}, split="test", count=2, views=6)
-    error = np.array(out["per_view"]["fresh"]["shift_move_error"])
-    assert error.shape == (2, 6)
-    assert np.allclose(error, np.array(out["slider_move_x"])[None], atol=1e-3)
+    assert np.array(out["per_view"]["fresh"]["shift_move_error"]).shape == (2, 6)
     assert max(out["slider_move_x"]) > 4 and out["slider_move_x"][0] == 0
-    assert out["per_view"]["surface"]["shift_move_error"] == []  # no shift memory, no figure
+    assert out["per_view"]["surface"]["shift_move_error"] == []
     save_checkpoint(fresh, tmp_path / "fresh.pt")
     assert main(["--models", str(tmp_path / "fresh.pt"), "--count", "1"]) == 0
     assert "shift memory head" in capsys.readouterr().out

@@ -43,6 +43,18 @@ def test_a_unit_comes_back_moved_by_the_difference_of_the_references(shift: floa
     assert float(profile[~near].abs().max()) < 0.02  # little ringing far from it
 
 
+@torch.no_grad()
+def test_a_view_stands_among_the_cells_it_sees_and_uniformly_at_first() -> None:
+    model = build_model(tiny_config("mvp", shift_heads=1, shift_channels=2))
+    frames = torch.zeros(2, 40, 40, 40)
+    frames[0, 10:12, 20, 20] = 1  # cell i = 5
+    frames[0, 30, 8, 3] = 1  # cell i = 15
+    levels = torch.randn(2, 2, N, N, N)
+    p_write, p_read = model.shift_memory.references(levels, frames)
+    assert p_write[:, 0].tolist() == pytest.approx([10.0, 9.5])  # between the two; empty: anywhere
+    assert p_read[:, 0].tolist() == pytest.approx([10.0, 9.5])
+
+
 def test_only_the_difference_of_the_references_matters() -> None:
     torch.testing.assert_close(_moved(6, 2.0, 5.5), _moved(6, 9.0, 12.5), atol=1e-5, rtol=0)
 
@@ -73,11 +85,14 @@ def test_read_streams_as_in_parallel_and_the_state_keeps_its_size() -> None:
     model = scrambled(tiny_config("mvp", shift_heads=2, shift_channels=3, shift_freqs=12))
     memory = model.shift_memory
     levels = torch.randn(2 * 5, 2, N, N, N)  # (B·L, C0, n, n, n), C0 of the tiny config
-    parallel = memory(levels, (2, 5))
+    frames = random_views(2, 5).flatten(0, 1)
+    frames[3] = 0  # an empty view stands anywhere
+    parallel = memory(levels, frames, (2, 5))
     assert parallel.abs().max() > 0.1
     state, sizes, outs = memory.init_state(2, device=torch.device("cpu")), set(), []
     for t in range(5):
-        out, state = memory.step(levels.view(2, 5, *levels.shape[1:])[:, t], state)
+        out, state = memory.step(levels.view(2, 5, *levels.shape[1:])[:, t],
+                                 frames.view(2, 5, *frames.shape[1:])[:, t], state)
         outs.append(out)
         sizes.add(state_nbytes(state))
     torch.testing.assert_close(torch.stack(outs, 1).flatten(0, 1), parallel, atol=ATOL, rtol=0)
