@@ -48,6 +48,7 @@ from typing import Any, Literal, get_args
 import torch
 from torch import Tensor, nn
 
+from completion.conv import Conv3d
 from completion.performer import FeatureMap, Kernel
 from completion.shift import ShiftMemory
 from completion.towers import AttentionTower, LSTMTower
@@ -129,8 +130,9 @@ class ModelConfig:
     added to the decoder's skip there, starting at zero. The 5³ bottleneck alone gives the
     decoder 8³-voxel blocks to draw a remembered shape from; this gives it the finer level too.
     shift_heads: heads of the shift memory (0: none; multi-view kinds): each view writes its finest
-    context level into one memory per row along i as a Fourier series, in the frame of a
-    reference position it predicts, and the current view reads it back in the frame of its own,
+    context level into one memory per row along i as a Fourier series, in the frame of where it
+    stands (a learned distribution over the cells it sees), and the current view reads it back in
+    the frame of where it stands,
     so a shape moves along the image's x axis by any fraction of a 2-voxel cell
     (:mod:`completion.shift`). Its read is added to the decoder's (G/2)³ skip, starting at zero.
     shift_channels: Cv, channels a head writes. shift_freqs: M frequencies along i (0: G/2, the
@@ -353,30 +355,6 @@ class Decoder(nn.Module):
         x = torch.cat((x, grids.unsqueeze(1).to(x.dtype)), dim=1)
         x = x.contiguous(memory_format=torch.channels_last_3d)
         return self.out(x).squeeze(1)  # (N, G, G, G)
-
-
-class Conv3d(nn.Conv3d):
-    """``nn.Conv3d`` that also uses oneDNN for a single frame in inference.
-
-    PyTorch sends a CPU convolution with batch 1 and a small input (N·C·D·H under 20,480, i.e.
-    every layer of this U-Net when one view is streamed) to its native kernel, which measured 10×
-    slower here than oneDNN (5.2 ms against 0.6 ms for 16 → 16 channels at 20³). Without
-    gradients this calls oneDNN directly; results agree to float rounding (~1e-6).
-    """
-
-    def forward(self, x: Tensor) -> Tensor:
-        if (
-            x.shape[0] < 2
-            and x.device.type == "cpu"
-            and x.dtype == torch.float32
-            and self.weight.dtype == torch.float32
-            and torch.backends.mkldnn.is_available()
-            and not (torch.is_grad_enabled() and (x.requires_grad or self.weight.requires_grad))
-        ):
-            return torch.mkldnn_convolution(
-                x, self.weight, self.bias, self.padding, self.stride, self.dilation, self.groups
-            )
-        return super().forward(x)
 
 
 def _conv(c_in: int, c_out: int, k: int, norm: str, *, stride: int = 1) -> list[nn.Module]:

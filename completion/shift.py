@@ -30,6 +30,8 @@ import math
 import torch
 from torch import Tensor, nn
 
+from completion.conv import Conv3d
+
 State = dict[str, Tensor]
 PREFIX = "shift."
 
@@ -96,16 +98,16 @@ class ShiftMemory(nn.Module):
         self.n = n = config.grid_size // 2
         self.heads, self.channels = config.shift_heads, config.shift_channels
         self.freqs = m = config.shift_freqs or n
-        self.value = nn.Conv3d(c0, self.heads * self.channels, 1)
+        self.value = Conv3d(c0, self.heads * self.channels, 1)
         # what to write and where a view stands depend on where a cell is, too (the object behind
         # is further away): a per-cell layer over the features and the cell's coordinates
         hidden = 2 * c0
-        self.cell = nn.Sequential(nn.Conv3d(c0 + 3, hidden, 1), nn.ReLU())
-        self.gate = nn.Conv3d(hidden, self.heads, 1)
-        self.where = nn.Conv3d(hidden, 2 * self.heads, 1)  # write and read reference logits
+        self.cell = nn.Sequential(Conv3d(c0 + 3, hidden, 1), nn.ReLU())
+        self.gate = Conv3d(hidden, self.heads, 1)
+        self.where = Conv3d(hidden, 2 * self.heads, 1)  # write and read reference logits
         nn.init.zeros_(self.where.weight)  # uniform at first: every view the same reference
         nn.init.zeros_(self.where.bias)
-        self.out = nn.Conv3d(self.heads * self.channels, c0, 1)
+        self.out = Conv3d(self.heads * self.channels, c0, 1)
         nn.init.zeros_(self.out.weight)
         nn.init.zeros_(self.out.bias)
         k = torch.arange(m, dtype=torch.float64)
