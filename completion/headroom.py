@@ -20,7 +20,9 @@ Two more columns say what a model draws where the slider is: "slider precision",
 predicted voxels within three voxels of the slider (the front object's voxels left out) that are
 the slider's, and "slider |dx|", how far along x (voxels) their centre lies from the slider's.
 For a model with a shift memory (``ModelConfig.shift_heads``) a line per model says how far
-from the slider's true move along x its best head puts what the first view wrote.
+from the slider's true move along x its best head puts what the first view wrote, and another
+its Jaccard with every head standing exactly at the slider's centre in every view (write and
+read, :func:`standing_at`): what a perfectly placed memory would add to the model as trained.
 
     python -m completion.headroom      # shipped single_view and mvp, test split, seed 0
     python -m completion.headroom --models mvp,runs/w/mvp.pt --split val --count 5
@@ -31,6 +33,7 @@ from the slider's true move along x its best head puts what the first view wrote
 from __future__ import annotations
 
 import argparse
+import contextlib
 import sys
 
 import numpy as np
@@ -42,22 +45,44 @@ from completion.cli import integer_at_least
 from completion.model import load_model
 from completion.objects import SPLITS
 from completion.scenes import VIEWS, make_sequence, object_meshes_in_camera
+from completion.shift import frame_at
 
 SLIDING = 1  # the sliding object's index in a slide-behind sequence (the front one is 0)
 NEAR = 2  # voxels: how far from the slider's truth a predicted voxel still counts as its completion
 AROUND = 3  # voxels: the neighbourhood of the slider whose predicted voxels the precision judges
 
 
+def slider_index(seq, view: int) -> np.ndarray:
+    """(3,) float: the sliding object's centre in ``view``'s grid, in voxels."""
+    centre = np.asarray(seq.meta["object_to_world"][view][SLIDING], dtype=np.float64)[:, 3]
+    in_camera = np.linalg.solve(seq.camera_to_world[view], centre)[:3]
+    return grid.points_to_indices(in_camera[None], seq.grid_to_camera[view], rounded=False)[0]
+
+
 def slider_move(seq, view: int) -> np.ndarray:
     """(3,) float: the voxels by which the sliding object moved between view 0 and ``view``,
     each in its own view's grid (the grids share a pitch and axes: the camera of slide behind
     stands still)."""
-    where = []
-    for v in (0, view):
-        centre = np.asarray(seq.meta["object_to_world"][v][SLIDING], dtype=np.float64)[:, 3]
-        in_camera = np.linalg.solve(seq.camera_to_world[v], centre)[:3]
-        where.append(grid.points_to_indices(in_camera[None], seq.grid_to_camera[v], rounded=False))
-    return where[1][0] - where[0][0]
+    return slider_index(seq, view) - slider_index(seq, 0)
+
+
+@contextlib.contextmanager
+def standing_at(model: torch.nn.Module, cells: torch.Tensor):
+    """Within the block, every head of the model's shift memory writes and reads each frame
+    exactly at ``cells[frame]`` along i (cells of its level, fractions allowed): given the
+    slider's centre, a transport of everything written by the slider's true move. How much a
+    perfectly placed memory would add to the model as trained."""
+    memory = model.shift_memory
+
+    def exact(_cells, _frames):
+        frame = frame_at(cells[:, None].expand(-1, memory.heads).float(), memory.omega)
+        return frame, frame
+
+    memory._frames = exact
+    try:
+        yield
+    finally:
+        del memory._frames
 
 
 def slider_shift(seq, view: int) -> np.ndarray:
@@ -117,7 +142,7 @@ def headroom(
     ("sliding_offset_x", NaN where it predicts none there); and per view the sliding object's
     share of the target."""
     keys = ("alone", "with_sliding_truth", "own_slider_moved", "sliding_recall",
-            "sliding_precision", "sliding_offset_x", "shift_move_error")
+            "sliding_precision", "sliding_offset_x", "shift_move_error", "shift_exact")
     rows = {name: {k: [] for k in keys} for name in models}
     share, still = [], []
     for index in range(count):
@@ -152,8 +177,13 @@ def headroom(
             rows[name]["sliding_offset_x"].append([_offset_x(d, s) for d, s in
                                                    zip(drawn, sliding, strict=True)])
             rows[name]["shift_move_error"].append(shift_move_error(model, x, move_x))
+            if getattr(model, "shift_memory", None) is not None:
+                cells = torch.tensor([slider_index(seq, v)[0] / 2 for v in range(len(seq))])
+                with torch.no_grad(), standing_at(model, cells):
+                    exact = torch.sigmoid(model(x))[0].numpy() >= getattr(model, "threshold", 0.5)
+                rows[name]["shift_exact"].append(grid.jaccard(exact, seq.targets))
     per_view = {
-        name: {k: _mean_over_sequences(v).round(4).tolist() for k, v in r.items()}
+        name: {k: _mean_over_sequences(v).round(4).tolist() if v else [] for k, v in r.items()}
         for name, r in rows.items()
     }
     return {"split": split, "count": count, "seed": seed, "shift_quantum": shift_quantum,
@@ -227,6 +257,10 @@ def main(argv: list[str] | None = None) -> int:
                   f"wrote to within {error[h, -6:].mean():.2f} voxels of the slider's move along "
                   f"x in the last six views ({error[h].mean():.2f} over all); standing still: "
                   f"{still[-6:].mean():.2f} ({still.mean():.2f})")
+            exact, alone = np.array(r["shift_exact"]), np.array(r["alone"])
+            print(f"{name}: with every head standing exactly at the slider (write and read): "
+                  f"{exact.mean():.3f} ({exact[-6:].mean():.3f}) against "
+                  f"{alone.mean():.3f} ({alone[-6:].mean():.3f}) as learned")
     return 0
 
 

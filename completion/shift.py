@@ -129,10 +129,16 @@ class ShiftMemory(nn.Module):
         cells = self._cells(x)
         gate = torch.sigmoid(self.gate(cells))  # (N, H, n, n, n)
         value = self.value(x).view(x.shape[0], heads, self.channels, n, n, n)
+        write, read = self._frames(cells, frames)
+        re, im = fourier_write(value * gate[:, :, None], write, self.omega)
+        return re, im, gate.sum(dim=2), read
+
+    def _frames(self, cells: Tensor, frames: Tensor) -> tuple[Frame, Frame]:
+        """Where each frame stands to write and to read: the frames of its two distributions
+        (``completion.headroom.standing_at`` replaces this to stand exactly where it says)."""
         where = self._where(cells, frames)
-        re, im = fourier_write(value * gate[:, :, None], frame_of(where[:, :heads], self.omega),
-                               self.omega)
-        return re, im, gate.sum(dim=2), frame_of(where[:, heads:], self.omega)
+        heads = self.heads
+        return frame_of(where[:, :heads], self.omega), frame_of(where[:, heads:], self.omega)
 
     def _cells(self, x: Tensor) -> Tensor:
         coords = self.coords.expand(x.shape[0], -1, -1, -1, -1)

@@ -123,6 +123,35 @@ def test_shift_move_error_measures_the_memorys_move_against_the_sliders(capsys, 
     assert np.array(out["per_view"]["fresh"]["shift_move_error"]).shape == (2, 6)
     assert max(out["slider_move_x"]) > 4 and out["slider_move_x"][0] == 0
     assert out["per_view"]["surface"]["shift_move_error"] == []
+    exact = out["per_view"]["fresh"]["shift_exact"]  # its read starts at zero: placing it is moot
+    assert exact == out["per_view"]["fresh"]["alone"]
+    assert out["per_view"]["surface"]["shift_exact"] == []
     save_checkpoint(fresh, tmp_path / "fresh.pt")
     assert main(["--models", str(tmp_path / "fresh.pt"), "--count", "1"]) == 0
-    assert "shift memory head" in capsys.readouterr().out
+    printed = capsys.readouterr().out
+    assert "shift memory head" in printed and "standing exactly at the slider" in printed
+
+
+def test_standing_at_moves_what_was_written_by_the_given_cells_and_then_lets_go():
+    from test_model import tiny_config
+
+    from completion.headroom import standing_at
+    from completion.model import build_model
+
+    model = build_model(tiny_config("mvp", shift_heads=2, shift_channels=2)).eval()
+    torch.nn.init.normal_(model.shift_memory.out.weight)  # so that the read reaches the output
+    x = (torch.rand(1, 4, 40, 40, 40, generator=torch.Generator().manual_seed(0)) > 0.9).float()
+    with torch.no_grad():
+        learned = model(x)
+        with standing_at(model, torch.tensor([3.0, 4.0, 5.5, 5.5])):
+            moving = model(x)
+        with standing_at(model, torch.tensor([10.0, 11.0, 12.5, 12.5])):
+            same_moves = model(x)  # the same moves between frames from another origin
+        with standing_at(model, torch.tensor([3.0, 3.0, 3.0, 3.0])):
+            still = model(x)
+        after = model(x)
+    origin = (moving - same_moves).abs().max()  # only the moves between frames count
+    first = (moving[:, 0] - still[:, 0]).abs().max()  # the first view reads only itself
+    moves = (moving[:, 1:] - still[:, 1:]).abs().max()
+    assert moves > 100 * max(origin, first), (moves, origin, first)
+    assert torch.equal(after, learned) and "_frames" not in vars(model.shift_memory)
