@@ -159,7 +159,9 @@ def headroom(
         around = [ndimage.binary_dilation(s, iterations=AROUND) & ~(t & ~s)
                   for s, t in zip(sliding, seq.targets, strict=True)]
         shifts = [quantised(slider_shift(seq, v), shift_quantum) for v in range(len(seq))]
-        move_x = [slider_move(seq, v)[0] for v in range(len(seq))]
+        centre_x = np.array([slider_index(seq, v)[0] for v in range(len(seq))])  # voxels
+        move_x = centre_x - centre_x[0]
+        cells = torch.from_numpy(centre_x / 2)  # where the slider is, in 2-voxel cells
         still.append(np.abs(move_x))
         for name, model in models.items():
             with torch.no_grad():
@@ -178,7 +180,6 @@ def headroom(
                                                    zip(drawn, sliding, strict=True)])
             rows[name]["shift_move_error"].append(shift_move_error(model, x, move_x))
             if getattr(model, "shift_memory", None) is not None:
-                cells = torch.tensor([slider_index(seq, v)[0] / 2 for v in range(len(seq))])
                 with torch.no_grad(), standing_at(model, cells):
                     exact = torch.sigmoid(model(x))[0].numpy() >= getattr(model, "threshold", 0.5)
                 rows[name]["shift_exact"].append(grid.jaccard(exact, seq.targets))
