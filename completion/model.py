@@ -137,6 +137,10 @@ class ModelConfig:
     (:mod:`completion.shift`). Its read is added to the decoder's (G/2)³ skip, starting at zero.
     shift_channels: Cv, channels a head writes. shift_freqs: M frequencies along i (0: G/2, the
     full resolution of that level). Memory: H·Cv·M·(G/2)²·2 + H·(G/2)² numbers.
+    shift_decoded: the shift memory also writes the decoder's features at its (G/2)³ level (before
+    the finest skip joins them, so a function of this view's frame and the context towers): the
+    shape as the model completes it, not only the surface the view saw. Starts at zero, so a
+    checkpoint without it warm-starts exactly.
     seed: weight initialisation and the initial FAVOR+ draw.
     """
 
@@ -166,6 +170,7 @@ class ModelConfig:
     shift_heads: int = 0
     shift_channels: int = 8
     shift_freqs: int = 0
+    shift_decoded: bool = False
     seed: int = 0
 
     def __post_init__(self) -> None:
@@ -224,6 +229,8 @@ class ModelConfig:
         if self.shift_heads and (self.kind == "single_view" or len(self.channels) < 2):
             raise ValueError("shift_heads needs a multi-view model (a memory) with two U-Net "
                              f"levels or more, got kind {self.kind!r}, channels {self.channels}")
+        if self.shift_decoded and not self.shift_heads:
+            raise ValueError("shift_decoded needs the shift memory (shift_heads >= 1)")
         if self.place_window and self.context == "view":
             raise ValueError("place_window needs tokens per place (context 'place' or 'both')")
         if self.context == "both" and self.place_dim % (2 * self.n_heads):
@@ -348,9 +355,21 @@ class Decoder(nn.Module):
         self.out = Conv3d(config.top_channels + 1, 1, 3, padding=1)
 
     def forward(self, bottom: Tensor, skips: list[Tensor], grids: Tensor) -> Tensor:
+        return self.finish(self.rise(bottom, skips), skips[0], grids)
+
+    def rise(self, bottom: Tensor, skips: list[Tensor]) -> Tensor:
+        """Up to the finest level, before its skip joins: (N, C0, G/2, G/2, G/2). It does not
+        depend on ``skips[0]``, so the shift memory can write it and add its read there."""
         x = self.bottom(bottom)
-        for up, fuse, skip in zip(self.ups, self.fuse, skips[-2::-1], strict=True):
+        if not self.ups:  # one level: the bottleneck is the finest level
+            return x
+        for up, fuse, skip in zip(self.ups[:-1], self.fuse[:-1], skips[-2:0:-1], strict=True):
             x = fuse(torch.cat((torch.relu(up(x)), skip), dim=1))
+        return torch.relu(self.ups[-1](x))
+
+    def finish(self, risen: Tensor, skip: Tensor, grids: Tensor) -> Tensor:
+        """:meth:`rise`'s output and the finest skip -> logits (N, G, G, G)."""
+        x = self.fuse[-1](torch.cat((risen, skip), dim=1)) if self.fuse else risen
         x = torch.relu(self.top(x))
         x = torch.cat((x, grids.unsqueeze(1).to(x.dtype)), dim=1)
         x = x.contiguous(memory_format=torch.channels_last_3d)
@@ -528,6 +547,7 @@ class CompletionModel(nn.Module):
                              f"{self.config.context!r}")
         skips = self.encoder(local_frames)  # local tower: this frame alone
         bottom = skips[-1]
+        levels: list[Tensor] = []
         if self.context_encoder is not None:
             levels = self.context_encoder(frames)
             for bridge, tower in self._paths():
@@ -546,17 +566,20 @@ class CompletionModel(nn.Module):
                 bottom = bottom + volume
                 if fine is not None:
                     skips = _add_fine(skips, bridge.fine_volume(fine.flatten(0, 1)))
-            if self.shift_memory is not None:
-                skips = _add_shift(skips, self.shift_memory(levels[0], frames, (b, n)))
-        logits = self.decoder(bottom, skips, local_frames)  # (N, G, G, G)
+        risen = self.decoder.rise(bottom, skips)
+        if self.shift_memory is not None:
+            decoded = risen if self.config.shift_decoded else None
+            skips = _add_shift(skips, self.shift_memory(levels[0], frames, (b, n), decoded))
+        logits = self.decoder.finish(risen, skips[0], local_frames)  # (N, G, G, G)
         return logits.view(seq.shape)
 
     def _context_step(
         self, frame: Tensor, state: State
-    ) -> tuple[list[Tensor], list[Tensor], Tensor | None, State]:
+    ) -> tuple[list[Tensor], list[Tensor], Tensor, State]:
         """One view through the context tower: each path's bottleneck volume (B, Cn, g, g, g),
-        the fine volumes of the paths with ``place_fine`` (B, Cn-1, 2g, 2g, 2g), the shift
-        memory's read (B, C0, G/2, G/2, G/2) or None, and the new state of every memory."""
+        the fine volumes of the paths with ``place_fine`` (B, Cn-1, 2g, 2g, 2g), the context
+        encoder's finest level (B, C0, G/2, G/2, G/2) for the shift memory, and the new state of
+        the sequence models."""
         assert self.context_encoder is not None
         levels = self.context_encoder(frame)
         volumes, fines, new = [], [], {}
@@ -573,11 +596,7 @@ class CompletionModel(nn.Module):
             if fine is not None:
                 fines.append(bridge.fine_volume(fine))
             new |= entries
-        shift = None
-        if self.shift_memory is not None:
-            shift, entries = self.shift_memory.step(levels[0], frame, state)
-            new |= entries
-        return volumes, fines, shift, new
+        return volumes, fines, levels[0], new
 
     # ---- streaming -----------------------------------------------------------------------
 
@@ -598,34 +617,47 @@ class CompletionModel(nn.Module):
 
         The given state is not modified, so it can be kept and stepped again.
         """
-        frame = self._check_grids(frame, ndim=4, what="frame")
-        self._check_state(state, batch=frame.shape[0])
-        skips = self.encoder(frame)
-        bottom = skips[-1]
-        new: State = {}
-        if self.context_encoder is not None:
-            volumes, fines, shift, new = self._context_step(frame, state)
-            for volume in volumes:
-                bottom = bottom + volume.to(bottom.dtype)
-            for fine in fines:
-                skips = _add_fine(skips, fine)
-            if shift is not None:
-                skips = _add_shift(skips, shift)
-        new["t"] = state["t"] + 1
-        return self.decoder(bottom, skips, frame), new
+        logits, new = self._step(state, frame, decode=True)
+        assert logits is not None
+        return logits, new
 
     def advance(self, state: State, frame: Tensor) -> State:
         """Consume one view without decoding it: the state :meth:`step` would return, cheaper.
 
         For catching up on views whose completion is not needed (only the latest one usually is).
         """
+        return self._step(state, frame, decode=False)[1]
+
+    def _step(self, state: State, frame: Tensor, *, decode: bool) -> tuple[Tensor | None, State]:
+        """:meth:`step`, without the decoder's last levels unless ``decode`` (and without the
+        local tower too unless the shift memory writes what the decoder makes of the view)."""
         frame = self._check_grids(frame, ndim=4, what="frame")
         self._check_state(state, batch=frame.shape[0])
         new: State = {}
+        volumes: list[Tensor] = []
+        fines: list[Tensor] = []
         if self.context_encoder is not None:
-            new = self._context_step(frame, state)[-1]
-        new["t"] = state["t"] + 1
-        return new
+            volumes, fines, level, new = self._context_step(frame, state)
+        t = {"t": state["t"] + 1}
+        if not (decode or self.config.shift_decoded):
+            if self.shift_memory is not None:
+                new |= self.shift_memory.step(level, frame, state)[1]
+            return None, new | t
+        skips = self.encoder(frame)
+        bottom = skips[-1]
+        for volume in volumes:
+            bottom = bottom + volume.to(bottom.dtype)
+        for fine in fines:
+            skips = _add_fine(skips, fine)
+        risen = self.decoder.rise(bottom, skips)
+        if self.shift_memory is not None:
+            decoded = risen if self.config.shift_decoded else None
+            shift, entries = self.shift_memory.step(level, frame, state, decoded)
+            new |= entries
+            skips = _add_shift(skips, shift)
+        if not decode:
+            return None, new | t
+        return self.decoder.finish(risen, skips[0], frame), new | t
 
     def _check_state(self, state: State, *, batch: int) -> None:
         """Keys and shapes as from ``init_state(batch)``; a KV cache may differ along T."""

@@ -14,7 +14,9 @@ ones a phase per frequency, so a move by any fraction of a cell. The distributio
 move at first (uniform), so a far move that pays gets a gradient, where a single mean position
 would be stuck (a shape moved a little does not reach a target 10 cells away). Per head: what to
 write (values times a sigmoid gate per cell), where the view stands to write and to read, and a
-gain per frequency (a Hann taper at the start). The read is divided by 1 + the gate mass
+gain per frequency (a Hann taper at the start). With ``shift_decoded`` a view also writes the
+decoder's features at that level (the shape it completes, where the context encoder has only
+the surface it saw), through a second value layer that starts at zero. The read is divided by 1 + the gate mass
 written so far in its row, and added to the decoder's (G/2)³ skip by a 1×1×1 conv that starts
 at zero, so a checkpoint without this memory warm-starts it exactly.
 
@@ -99,6 +101,11 @@ class ShiftMemory(nn.Module):
         self.heads, self.channels = config.shift_heads, config.shift_channels
         self.freqs = m = config.shift_freqs or n
         self.value = Conv3d(c0, self.heads * self.channels, 1)
+        # ``shift_decoded``: what the decoder makes of the view is written too, from zero
+        self.value_decoded: Conv3d | None = None
+        if config.shift_decoded:
+            self.value_decoded = Conv3d(c0, self.heads * self.channels, 1, bias=False)
+            nn.init.zeros_(self.value_decoded.weight)
         # what to write and where a view stands depend on where a cell is, too (the object behind
         # is further away): a per-cell layer over the features and the cell's coordinates
         hidden = 2 * c0
@@ -120,15 +127,21 @@ class ShiftMemory(nn.Module):
         coords = torch.stack(torch.meshgrid(axis, axis, axis, indexing="ij"))  # (3, n, n, n)
         self.register_buffer("coords", coords, persistent=False)
 
-    def _view(self, level: Tensor, frames: Tensor) -> tuple[Tensor, Tensor, Tensor, Frame]:
-        """One frame's part: level (N, C0, n, n, n) and the occupancy it came from (N, G, G, G)
-        -> series re, im (N, H, Cv, M, n, n), gate mass per row (N, H, n, n), and the frame it
-        reads in."""
+    def _view(self, level: Tensor, frames: Tensor,
+              decoded: Tensor | None) -> tuple[Tensor, Tensor, Tensor, Frame]:
+        """One frame's part: level (N, C0, n, n, n), the occupancy it came from (N, G, G, G)
+        and (``shift_decoded``) the decoder's features at that level (N, C0, n, n, n) -> series
+        re, im (N, H, Cv, M, n, n), gate mass per row (N, H, n, n), and the frame it reads in."""
         x = level.float()
         heads, n = self.heads, self.n
         cells = self._cells(x)
         gate = torch.sigmoid(self.gate(cells))  # (N, H, n, n, n)
-        value = self.value(x).view(x.shape[0], heads, self.channels, n, n, n)
+        value = self.value(x)
+        if (decoded is None) != (self.value_decoded is None):
+            raise ValueError("the decoder's features are needed exactly when shift_decoded is set")
+        if self.value_decoded is not None:
+            value = value + self.value_decoded(decoded.float())
+        value = value.view(x.shape[0], heads, self.channels, n, n, n)
         write, read = self._frames(cells, frames)
         re, im = fourier_write(value * gate[:, :, None], write, self.omega)
         return re, im, gate.sum(dim=2), read
@@ -166,12 +179,14 @@ class ShiftMemory(nn.Module):
         y = y / (1 + mass[:, :, None, None])  # (N, H, Cv, n, n, n)
         return self.out(y.flatten(1, 2))
 
-    def forward(self, level: Tensor, frames: Tensor, batch: tuple[int, int]) -> Tensor:
-        """Parallel: the finest context level of every frame (B·L, C0, n, n, n) and the frames
-        (B·L, G, G, G), in (B, L) order -> what each view reads, (B·L, C0, n, n, n), causal
-        over views."""
+    def forward(self, level: Tensor, frames: Tensor, batch: tuple[int, int],
+                decoded: Tensor | None = None) -> Tensor:
+        """Parallel: the finest context level of every frame (B·L, C0, n, n, n), the frames
+        (B·L, G, G, G) and, with ``shift_decoded``, the decoder's features at that level (B·L,
+        C0, n, n, n), in (B, L) order -> what each view reads, (B·L, C0, n, n, n), causal over
+        views."""
         with torch.autocast(device_type=level.device.type, enabled=False):
-            re, im, mass, frame = self._view(level, frames)
+            re, im, mass, frame = self._view(level, frames, decoded)
             b, views = batch
             re, im, mass = (t.view(b, views, *t.shape[1:]).cumsum(1).flatten(0, 1)
                             for t in (re, im, mass))
@@ -183,11 +198,13 @@ class ShiftMemory(nn.Module):
                 f"{PREFIX}im": torch.zeros(shape, device=device),
                 f"{PREFIX}mass": torch.zeros(batch, self.heads, n, n, device=device)}
 
-    def step(self, level: Tensor, frames: Tensor, state: State) -> tuple[Tensor, State]:
-        """Streaming: one view's finest context level (B, C0, n, n, n) and its frame (B, G, G,
-        G) -> what it reads, and the new state entries."""
+    def step(self, level: Tensor, frames: Tensor, state: State,
+             decoded: Tensor | None = None) -> tuple[Tensor, State]:
+        """Streaming: one view's finest context level (B, C0, n, n, n), its frame (B, G, G, G)
+        and, with ``shift_decoded``, the decoder's features there -> what it reads, and the new
+        state entries."""
         with torch.autocast(device_type=level.device.type, enabled=False):
-            re, im, mass, frame = self._view(level, frames)
+            re, im, mass, frame = self._view(level, frames, decoded)
             re, im = state[f"{PREFIX}re"] + re, state[f"{PREFIX}im"] + im
             mass = state[f"{PREFIX}mass"] + mass
             new = {f"{PREFIX}re": re, f"{PREFIX}im": im, f"{PREFIX}mass": mass}

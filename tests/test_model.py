@@ -55,6 +55,8 @@ VARIANTS = [
     ("mvp", "relu", 0, "place-fine"),
     ("mvp", "softmax", 30, "both-row-fine-shift"),
     ("lstm", "softmax", 0, "view-shift"),
+    ("mvp", "softmax", 30, "both-row-fine-shift-decoded"),
+    ("lstm", "softmax", 0, "view-shift-decoded"),
 ]
 IDS = [
     (f"{kind}-{kernel}" if kind == "mvp" else kind) + (f"-rot{rot}" if rot else "")
@@ -117,7 +119,8 @@ def stream(model: CompletionModel, seq: torch.Tensor) -> torch.Tensor:
 def tiny_model(request: pytest.FixtureRequest) -> CompletionModel:
     kind, kernel, rotation, context = request.param
     # "-local": attention within one place; "-row": and along the whole i row (place_window_x);
-    # "-fine": the fine memory (place_fine); "-shift": the shift memory (shift_heads)
+    # "-fine": the fine memory (place_fine); "-shift": the shift memory (shift_heads);
+    # "-decoded": it writes the decoder's features too (shift_decoded)
     context, *options = context.split("-")
     local = bool({"local", "row"} & set(options))
     return scrambled(tiny_config(kind, kernel, value_rotation=rotation, context=context,
@@ -125,7 +128,8 @@ def tiny_model(request: pytest.FixtureRequest) -> CompletionModel:
                                  place_window_x=4 if "row" in options else 0,
                                  place_fine=4 if "fine" in options else 0,
                                  shift_heads=2 if "shift" in options else 0,
-                                 shift_channels=2))  # fmt: skip
+                                 shift_channels=2,
+                                 shift_decoded="decoded" in options))  # fmt: skip
 
 
 # ---- the streaming contract -----------------------------------------------------------------

@@ -122,6 +122,29 @@ def test_warm_start_without_it_is_exact_and_then_it_carries_earlier_views(
     assert (model(changed)[0, 3] - model(seq)[0, 3]).abs().max() > 1e-4
 
 
+@torch.no_grad()
+def test_writing_the_decoded_view_warm_starts_exactly_and_then_changes_what_is_read(
+    tmp_path: Path,
+) -> None:
+    base = tiny_config("mvp", shift_heads=2, shift_channels=2)
+    save_checkpoint(scrambled(base), tmp_path / "mvp.pt")
+    source = build_model(base).eval()
+    warm_start(source, tmp_path / "mvp.pt")
+    model = build_model(base.replace(shift_decoded=True)).eval()
+    assert warm_start(model, tmp_path / "mvp.pt") == ["shift_memory.value_decoded.weight"]
+    seq = random_views(1, 4)
+    torch.testing.assert_close(model(seq), source(seq), atol=ATOL, rtol=0)
+    torch.nn.init.normal_(model.shift_memory.value_decoded.weight, std=0.5)
+    assert (model(seq) - source(seq)).abs().max() > 1e-4
+    # advance (no decoding) leaves the state that step leaves
+    state = model.init_state(1)
+    _, stepped = model.step(state, seq[:, 0])
+    advanced = model.advance(state, seq[:, 0])
+    assert stepped.keys() == advanced.keys()
+    for name in stepped:
+        torch.testing.assert_close(advanced[name], stepped[name], atol=ATOL, rtol=0)
+
+
 def test_place_lr_takes_the_shift_memory_and_bad_configs_raise() -> None:
     model = build_model(tiny_config("mvp", context="both", shift_heads=1))
     groups = param_groups(model, 1e-4, 1e-3)
@@ -133,6 +156,7 @@ def test_place_lr_takes_the_shift_memory_and_bad_configs_raise() -> None:
         ({"shift_heads": -1}, "shift_heads must be >= 0"),
         ({"shift_heads": 1, "shift_freqs": 21}, "shift_freqs in"),
         ({"shift_heads": 1, "shift_channels": 0}, "shift_channels >= 1"),
+        ({"shift_decoded": True}, "shift_decoded needs the shift memory"),
     ):
         with pytest.raises(ValueError, match=message):
             ModelConfig(**{**tiny_config().to_dict(), **overrides})
