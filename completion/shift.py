@@ -126,6 +126,9 @@ class ShiftMemory(nn.Module):
         axis = torch.linspace(-1, 1, n)
         coords = torch.stack(torch.meshgrid(axis, axis, axis, indexing="ij"))  # (3, n, n, n)
         self.register_buffer("coords", coords, persistent=False)
+        # a list while training with --where-weight: each forward appends where the frames
+        # stand, (N, 2H, n) probabilities along i (completion.train.where_loss)
+        self.record: list[Tensor] | None = None
 
     def _view(self, level: Tensor, frames: Tensor,
               decoded: Tensor | None) -> tuple[Tensor, Tensor, Tensor, Frame]:
@@ -150,6 +153,8 @@ class ShiftMemory(nn.Module):
         """Where each frame stands to write and to read: the frames of its two distributions
         (``completion.headroom.standing_at`` replaces this to stand exactly where it says)."""
         where = self._where(cells, frames)
+        if self.record is not None:
+            self.record.append(where)
         heads = self.heads
         return frame_of(where[:, :heads], self.omega), frame_of(where[:, heads:], self.omega)
 

@@ -78,9 +78,7 @@ def load_split(folder: Path, conditions: list[str], split: str) -> dict:
     starts in seconds; the cache is keyed by the name, size and modification time of every shard
     it holds, so regenerated shards are read again rather than taken from a stale cache.
     """
-    paths = sorted(p for c in conditions for p in folder.glob(f"{c}_{split}_*.npz"))
-    if not paths:
-        raise ValueError(f"no {split} shards for {conditions} in {folder}")
+    paths = _shard_paths(folder, conditions, split)
     stamps = (f"{p.name} {p.stat().st_size} {p.stat().st_mtime_ns}" for p in paths)
     key = hashlib.sha1("\n".join(stamps).encode()).hexdigest()[:12]
     cache = folder / f".packed-{split}-{key}.npz"
@@ -101,6 +99,53 @@ def load_split(folder: Path, conditions: list[str], split: str) -> dict:
     return out
 
 
+def _shard_paths(folder: Path, conditions: list[str], split: str) -> list[Path]:
+    """The shards of ``conditions`` in ``folder``, in the order :func:`load_split` packs them."""
+    paths = sorted(p for c in conditions for p in folder.glob(f"{c}_{split}_*.npz"))
+    if not paths:
+        raise ValueError(f"no {split} shards for {conditions} in {folder}")
+    return paths
+
+
+def slider_cells(folder: Path, conditions: list[str], split: str) -> np.ndarray:
+    """(N, L) float32 in :func:`load_split`'s order: the sliding object's centre along i in each
+    view of every slide-behind sequence, in cells of the shift memory's level (2 voxels; a cell's
+    centre is a whole number), NaN for the other conditions (``--where-weight``)."""
+    from completion.headroom import slider_index  # the slider's pose is in each shard's meta
+
+    rows = []
+    for path in _shard_paths(folder, conditions, split):
+        if not path.name.startswith("slide_behind_"):
+            rows.append(None)
+            continue
+        seq = load_sequence(path)
+        rows.append([(slider_index(seq, v)[0] - 0.5) / 2 for v in range(len(seq))])
+    views = max((len(r) for r in rows if r is not None), default=0)
+    return np.array([[np.nan] * views if r is None else r for r in rows], dtype=np.float32)
+
+
+def where_loss(where: torch.Tensor, cells: torch.Tensor) -> torch.Tensor:
+    """Cross-entropy of where each shift-memory head stands, to write and to read, along i
+    (N, 2H, n probabilities; ``ShiftMemory.record``) against the slider's centre (N,) in cells,
+    a two-hot target between the cells either side of it; frames without a slider (NaN) are
+    left out (zero when none has one)."""
+    keep = ~torch.isnan(cells)
+    if not bool(keep.any()):
+        return where.sum() * 0.0
+    n = where.shape[-1]
+    c = cells[keep].clamp(0, n - 1)
+    lo = c.floor().long()
+    hi = (lo + 1).clamp(max=n - 1)
+    log_p = torch.log(where[keep].clamp_min(1e-6))  # (K, 2H, n)
+    heads = log_p.shape[1]
+
+    def at(i: torch.Tensor) -> torch.Tensor:
+        return log_p.gather(-1, i[:, None, None].expand(-1, heads, 1))[..., 0]  # (K, 2H)
+
+    frac = (c - lo)[:, None]
+    return -((1 - frac) * at(lo) + frac * at(hi)).mean()
+
+
 def unpack(packed: np.ndarray) -> tuple[torch.Tensor, torch.Tensor]:
     """(B, 2, L, 40, 40, 5) packed -> inputs, targets as float tensors (B, L, 40, 40, 40)."""
     grids = torch.from_numpy(np.unpackbits(packed, axis=-1)).float()
@@ -118,9 +163,12 @@ def draw_batch(draw: torch.Tensor | None, n: int, size: int, gen: torch.Generato
     return pick.sort().values.numpy()
 
 
-def augment(x: torch.Tensor, y: torch.Tensor, gen: torch.Generator, mode: str = "mirror"):
+def augment(x: torch.Tensor, y: torch.Tensor, gen: torch.Generator, mode: str = "mirror",
+            cells: torch.Tensor | None = None):
     """Random symmetries of the camera frame, per sequence, all views alike; never a flip of z,
-    the viewing direction, which decides what is seen and what is hidden.
+    the viewing direction, which decides what is seen and what is hidden. ``cells`` (B, L),
+    positions along i in cells of the (G/2)³ level (:func:`slider_cells`), are mirrored in place
+    with x.
 
     ``mirror``: flip x and/or y (grid axes i, j). ``roll``: flip both or neither, a 180° roll
     about the viewing axis: a proper rotation, so the sense in which the camera circles the
@@ -136,6 +184,8 @@ def augment(x: torch.Tensor, y: torch.Tensor, gen: torch.Generator, mode: str = 
         dims = [d for d, f in ((1, fx), (2, fy)) if f]  # axes of one (L, G, G, G) sequence
         if dims:
             x[b], y[b] = x[b].flip(dims), y[b].flip(dims)
+        if fx and cells is not None:
+            cells[b] = x.shape[2] // 2 - 1 - cells[b]
     return x, y
 
 
@@ -345,6 +395,11 @@ def _train(args: argparse.Namespace, world: World, device: torch.device) -> dict
 
     config = default_config(args.model, **args.config, seed=args.seed)
     model = build_model(config)
+    sliders = None  # the slider's centre per view, for --where-weight
+    if args.where_weight:
+        if model.shift_memory is None:
+            raise ValueError("--where-weight needs a shift memory (--config shift_heads=...)")
+        sliders = slider_cells(args.train_dir, conditions, "train")
     if args.init_from:
         fresh = warm_start(model, args.init_from)
         if world.main and fresh:
@@ -433,7 +488,10 @@ def _train(args: argparse.Namespace, world: World, device: torch.device) -> dict
         idx = part[pick]
         first = int(torch.randint(0, full_views - args.views + 1, (1,), generator=gen))
         x, y = unpack(train_set["packed"][idx, :, first : first + args.views])
-        x, y = augment(x, y, gen, args.augment)
+        cells = None
+        if sliders is not None:
+            cells = torch.from_numpy(sliders[idx, first : first + args.views])
+        x, y = augment(x, y, gen, args.augment, cells)
         x, local = mask_views(x, gen, hide=args.hide_views, blank_local=args.blank_local,
                               hide_context=args.hide_context)
         x, y = x.to(device), y.to(device)
@@ -444,6 +502,8 @@ def _train(args: argparse.Namespace, world: World, device: torch.device) -> dict
         drop = None
         if args.drop_view_path:  # drawn only when asked, so older commands repeat exactly
             drop = (torch.rand(x.shape[0], generator=gen) < args.drop_view_path).to(device)
+        if cells is not None:
+            model.shift_memory.record = []
         with autocast:
             logits = net(x, local=local, drop_view_path=drop)
         voxel = None
@@ -459,6 +519,10 @@ def _train(args: argparse.Namespace, world: World, device: torch.device) -> dict
             loss = (loss if weights is None else loss * weights).mean()
         if args.jaccard_weight:
             loss = loss + args.jaccard_weight * soft_jaccard_loss(logits.float(), y, weights)
+        if cells is not None:
+            (where,) = model.shift_memory.record
+            model.shift_memory.record = None
+            loss = loss + args.where_weight * where_loss(where, cells.flatten().to(device))
         opt.zero_grad(set_to_none=True)
         step += 1
         bar.update()
@@ -746,6 +810,11 @@ def main(argv: list[str] | None = None) -> int:
                    "the gradient goes to what the current view alone cannot give")
     p.add_argument("--focus-weight", type=float, default=2.0, metavar="W",
                    help="with --focus-model: the most a voxel's BCE weight rises above 1")
+    p.add_argument("--where-weight", type=float, default=0.0, metavar="W",
+                   help="models with a shift memory: add W × the cross-entropy of where each of "
+                   "its heads stands along the image's x axis (to write and to read) against the "
+                   "sliding object's centre in the slide-behind sequences (from each shard's "
+                   "poses), so that it learns to stand at the slider; 0 = off")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     args = p.parse_args(argv)
     for name in ("views", "steps", "val_every", "batch_size", "threads"):
@@ -781,6 +850,10 @@ def main(argv: list[str] | None = None) -> int:
         p.error(f"--focus-weight must be a finite number > 0, got {args.focus_weight}")
     if not (args.jaccard_weight >= 0 and math.isfinite(args.jaccard_weight)):
         p.error(f"--jaccard-weight must be a finite number ≥ 0, got {args.jaccard_weight}")
+    if not (args.where_weight >= 0 and math.isfinite(args.where_weight)):
+        p.error(f"--where-weight must be a finite number ≥ 0, got {args.where_weight}")
+    if args.where_weight and not args.config.get("shift_heads"):
+        p.error("--where-weight needs a shift memory (--config shift_heads=1 or more)")
     if not 0.0 <= args.ema < 1.0:
         p.error(f"--ema must be in [0, 1), got {args.ema}")
     if unknown := set(args.condition_weight) - set(args.conditions):

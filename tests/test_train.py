@@ -1,6 +1,7 @@
 import json
 import math
 
+import numpy as np
 import pytest
 
 from completion import data
@@ -411,3 +412,63 @@ def test_focus_model_trains_and_rejects_bad_input(shards, tmp_path, capsys):
                     *args[args.index("--focus-model") + 2:]]
     with pytest.raises(ValueError, match="expected a single_view checkpoint"):
         main(mvp_as_focus)
+
+
+def test_where_loss_is_low_at_the_slider_and_leaves_out_frames_without_one():
+    import torch
+
+    from completion.train import where_loss
+
+    n = 20
+    at_slider = torch.full((2, 2, n), 1e-4)
+    at_slider[:, :, 7] = at_slider[:, :, 8] = 0.5  # between cells 7 and 8
+    elsewhere = torch.full((2, 2, n), 1.0 / n)
+    cells = torch.tensor([7.5, float("nan")])
+    assert float(where_loss(at_slider, cells)) == pytest.approx(-math.log(0.5), abs=1e-3)
+    assert float(where_loss(elsewhere, cells)) == pytest.approx(math.log(n), abs=1e-3)
+    none = elsewhere.clone().requires_grad_()
+    loss = where_loss(none, torch.full((2,), float("nan")))
+    loss.backward()  # no slider in the batch: zero, and still part of the graph
+    assert loss.item() == 0.0 and none.grad is not None
+
+
+def test_augment_mirrors_the_slider_cells_with_x():
+    import torch
+
+    from completion.train import augment
+
+    x = torch.zeros(8, 1, 40, 40, 40)
+    x[:, 0, 4, 10, 20] = 1  # voxel i = 4: cell (4 − 0.5) / 2
+    cells = torch.full((8, 1), 1.75)
+    x, _ = augment(x, x.clone(), torch.Generator().manual_seed(1), "mirror", cells)
+    i = x[:, 0].flatten(1).argmax(1) // (40 * 40)
+    assert set(i.tolist()) == {4, 35}  # some sequences flipped in x, some not
+    assert torch.allclose(cells[:, 0], (i.float() - 0.5) / 2)
+
+
+def test_where_weight_trains_a_shift_memory_on_the_sliders_poses(tmp_path, capsys):
+    from completion.headroom import slider_index
+    from completion.train import slider_cells
+
+    root = tmp_path / "shards"
+    for split in ("train", "val"):
+        data.generate(["camera_pan", "slide_behind"], split, 1, seed=0, out=root / split,
+                      views=3, progress=False)
+    cells = slider_cells(root / "train", ["camera_pan", "slide_behind"], "train")
+    assert cells.shape == (2, 3) and np.isnan(cells[0]).all()  # camera pan first: no slider
+    seq = data.load_sequence(next((root / "train").glob("slide_behind_*.npz")))
+    assert cells[1].tolist() == pytest.approx(
+        [(slider_index(seq, v)[0] - 0.5) / 2 for v in range(3)], abs=1e-4)
+    args = ["--model", "mvp", "--views", "3", "--conditions", "camera_pan,slide_behind",
+            "--train-dir", str(root / "train"), "--val-dir", str(root / "val"),
+            "--train-count", "0", "--val-count", "0", "--steps", "2", "--val-every", "2",
+            "--config", TINY + ",shift_heads=1,shift_channels=2", "--where-weight", "0.1",
+            "--out", str(tmp_path / "w.pt"), "--quiet"]
+    assert main(args) == 0
+    summary = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert summary["steps"] == 2 and math.isfinite(summary["history"][-1]["loss"])
+    for bad, says in ((["--where-weight", "0.1"], "needs a shift memory"),
+                      (["--where-weight", "-1"], "finite number ≥ 0")):
+        with pytest.raises(SystemExit):
+            main(["--model", "mvp", *bad, "--out", "x.pt"])
+        assert says in capsys.readouterr().err
