@@ -16,9 +16,9 @@ would be stuck (a shape moved a little does not reach a target 10 cells away). P
 write (values times a sigmoid gate per cell), where the view stands to write and to read, and a
 gain per frequency (a Hann taper at the start). With ``shift_decoded`` a view also writes the
 decoder's features at that level (the shape it completes, where the context encoder has only
-the surface it saw), through a second value layer that starts at zero. The read is divided by 1 + the gate mass
-written so far in its row, and added to the decoder's (G/2)³ skip by a 1×1×1 conv that starts
-at zero, so a checkpoint without this memory warm-starts it exactly.
+the surface it saw), through a second value layer that starts at zero. The read is divided by
+1 + the gate mass written so far in its row, and added to the decoder's (G/2)³ skip by a 1×1×1
+conv that starts at zero, so a checkpoint without this memory warm-starts it exactly.
 
 Memory per head: (Cv, M, n, n) complex numbers (two real tensors) and (n, n) written mass, n =
 G/2, M frequencies of period 2n (so a shape moved by up to n cells does not wrap onto itself),
