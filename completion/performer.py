@@ -316,17 +316,26 @@ def neighbourhood_sum(x: Tensor, side: int, window: Window) -> Tensor:
     (wi, wj, wk) = ``window`` (an int is the same reach along all three axes).
 
     x: (..., P, F) with P = side³ places in (i, j, k) order -> (..., P, F).
+
+    The box is separable: one sum of shifted slices along each axis in turn, on the
+    features-last layout. That measured 20–50× faster here than one ``avg_pool3d`` over the box
+    (a place path's values carry thousands of features: 894 ms against 40 ms for one training
+    batch's keys × values, reach (4, 1, 1)).
     """
     lead, features = x.shape[:-2], x.shape[-1]
     if x.shape[-2] != side**3:
         raise ValueError(f"expected {side**3} places (side {side}), got {x.shape[-2]}")
     reach = tuple(min(w, side - 1) for w in _reach(window))  # a reach past the volume reads all
-    cube = x.reshape(-1, side, side, side, features).permute(0, 4, 1, 2, 3)  # (N, F, s, s, s)
-    kernel = tuple(2 * w + 1 for w in reach)
-    # zeros padded first: avg_pool3d refuses a kernel wider than its unpadded input
-    cube = nn.functional.pad(cube, tuple(w for w in reversed(reach) for _ in (0, 1)))
-    cube = nn.functional.avg_pool3d(cube, kernel, stride=1) * math.prod(kernel)
-    return cube.permute(0, 2, 3, 4, 1).reshape(*lead, side**3, features)
+    cube = x.reshape(-1, side, side, side, features)
+    for axis, w in zip((1, 2, 3), reach, strict=True):
+        if w == 0:
+            continue
+        out = cube.clone()
+        for d in range(1, w + 1):  # what lies d places further and d places nearer
+            out.narrow(axis, 0, side - d).add_(cube.narrow(axis, d, side - d))
+            out.narrow(axis, d, side - d).add_(cube.narrow(axis, 0, side - d))
+        cube = out
+    return cube.reshape(*lead, side**3, features)
 
 
 def local_causal_linear_attention(
