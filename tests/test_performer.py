@@ -254,3 +254,21 @@ def test_block_and_local_attention_match_their_definitions_and_their_steps() -> 
     again = block_causal_softmax_attention(q, k, changed, near=near)
     assert torch.equal(out[0, :, 26], again[0, :, 26])  # the far corner: untouched
     assert not torch.equal(out[0, 3, 1], again[0, 3, 1])  # a neighbour, three views later
+
+
+def test_neighbourhood_sum_is_the_sum_over_each_places_neighbours() -> None:
+    """The separable box sum equals the (P, P) neighbour mask times the features, forwards and
+    backwards, for reaches within and past the volume (a reach of 4 at side 3 reads the row)."""
+    from completion.performer import neighbourhood_sum, place_neighbours
+
+    side = 3
+    g = torch.Generator().manual_seed(1)
+    x = torch.randn(2, 4, side**3, 6, generator=g, requires_grad=True)
+    for window in (0, 1, (4, 1, 0), (0, 2, 1)):
+        mask = place_neighbours(side, window).float()
+        got = neighbourhood_sum(x, side, window)
+        torch.testing.assert_close(got, mask @ x, atol=1e-5, rtol=1e-5)
+        (grad,) = torch.autograd.grad(got.square().sum(), x)
+        torch.testing.assert_close(grad, mask.T @ (2 * mask @ x), atol=1e-4, rtol=1e-4)
+    with pytest.raises(ValueError, match="27 places"):
+        neighbourhood_sum(torch.zeros(1, 26, 2), side, 1)
