@@ -1,6 +1,6 @@
 """Widen a checkpoint's U-Net without changing what it computes, to train more capacity from it.
 
-    python -m completion.widen CKPT OUT --channels 16:32:128 [--kind single_view]
+    python -m completion.widen CKPT OUT --channels 16:32:128 [--kind single_view] [--seed N]
 
 Every tensor whose shape grows keeps its old values at the old channels' places; the new output
 channels keep their fresh init, and old outputs read the new input channels with zero weights,
@@ -83,6 +83,7 @@ def main(argv: Sequence[str] | None = None) -> None:
     p.add_argument("out", type=Path, help="where to write the widened checkpoint")
     p.add_argument("--channels", required=True,
                    help="the U-Net's new channels per level, e.g. 16:32:128")
+    p.add_argument("--seed", type=int, default=0, help="seed of the new channels' fresh init")
     p.add_argument("--kind", choices=("single_view",), default=None,
                    help="keep only the local tower and decoder (a Single-View from any model)")
     args = p.parse_args(argv)
@@ -102,7 +103,7 @@ def main(argv: Sequence[str] | None = None) -> None:
     own = model.state_dict()
     model.load_state_dict({k: v.float() for k, v in payload["state_dict"].items() if k in own})
     try:
-        wide = widen(model.eval(), channels)
+        wide = widen(model.eval(), channels, seed=args.seed)
     except ValueError as err:
         p.error(str(err))
     g = config.grid_size
