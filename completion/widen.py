@@ -24,9 +24,11 @@ from completion.model import (
     CompletionModel,
     ModelConfig,
     build_model,
+    load_checkpoint,
     read_checkpoint,
     save_checkpoint,
 )
+from completion.train import warm_start
 
 
 def _index_map(name: str, axis: int, old: int, new: int) -> Tensor:
@@ -94,14 +96,15 @@ def main(argv: Sequence[str] | None = None) -> None:
     if not args.checkpoint.is_file():
         p.error(f"no such checkpoint {args.checkpoint}")
     payload = read_checkpoint(args.checkpoint)
-    config = ModelConfig.from_dict(payload["config"])
-    if args.kind:
-        config = ModelConfig(kind="single_view", grid_size=config.grid_size,
-                             channels=config.channels, conv_kernel=config.conv_kernel,
-                             norm=config.norm, top_channels=config.top_channels)
-    model = build_model(config)
-    own = model.state_dict()
-    model.load_state_dict({k: v.float() for k, v in payload["state_dict"].items() if k in own})
+    if args.kind:  # the local tower and decoder, as --init-from gives them to Single-View
+        saved = ModelConfig.from_dict(payload["config"])
+        model = build_model(ModelConfig(kind="single_view", grid_size=saved.grid_size,
+                                        channels=saved.channels, conv_kernel=saved.conv_kernel,
+                                        norm=saved.norm, top_channels=saved.top_channels))
+        warm_start(model, args.checkpoint)
+    else:
+        model = load_checkpoint(args.checkpoint)
+    config = model.config
     try:
         wide = widen(model.eval(), channels, seed=args.seed)
     except ValueError as err:
