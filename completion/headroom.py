@@ -24,6 +24,13 @@ from the slider's true move along x its best head puts what the first view wrote
 its Jaccard with every head standing exactly at the slider's centre in every view (write and
 read, :func:`standing_at`): what a perfectly placed memory would add to the model as trained.
 
+Two columns ask whether fusing what the views *saw* of the slider could beat carrying one view's
+completion: the model run on inputs to which the slider's observed surface voxels are added,
+moved by its true translation, from the first view only ("+ first surface moved") or from every
+view so far ("+ all surfaces moved": registered fusion of the slider's observations). Where the
+second is no better than the first, the few degrees the slider turns while it moves across the
+image tell a completer nothing more, and a memory of observations cannot beat one of completions.
+
     python -m completion.headroom      # shipped single_view and mvp, test split, seed 0
     python -m completion.headroom --models mvp,runs/w/mvp.pt --split val --count 5
     python -m completion.headroom --models mvp --shift-quantum 4   # transport to within 2 voxels
@@ -114,6 +121,20 @@ def moved(voxels: np.ndarray, shift: np.ndarray) -> np.ndarray:
     return ndimage.shift(voxels.astype(np.uint8), shift, order=0, mode="constant", cval=0) > 0
 
 
+def observed_surfaces_moved(inputs: np.ndarray, sliding: np.ndarray, shifts: list,
+                            *, every_view: bool) -> np.ndarray:
+    """(L, 40, 40, 40) bool: ``inputs`` with the slider's observed voxels (input voxels within
+    one voxel of its truth) of view 0 (or of every view u ≤ v) moved into each view v by the
+    slider's translation between them."""
+    seen = [i & ndimage.binary_dilation(s, iterations=1) for i, s in zip(inputs, sliding,
+                                                                          strict=True)]
+    out = inputs.copy()
+    for v in range(len(inputs)):
+        for u in range(v + 1 if every_view else 1):
+            out[v] |= moved(seen[u], np.asarray(shifts[v]) - np.asarray(shifts[u]))
+    return out
+
+
 def _offset_x(drawn: np.ndarray, sliding: np.ndarray) -> float:
     """|mean i of ``drawn`` − mean i of ``sliding``| in voxels; NaN if either is empty."""
     if not drawn.any() or not sliding.any():
@@ -142,7 +163,8 @@ def headroom(
     ("sliding_offset_x", NaN where it predicts none there); and per view the sliding object's
     share of the target."""
     keys = ("alone", "with_sliding_truth", "own_slider_moved", "sliding_recall",
-            "sliding_precision", "sliding_offset_x", "shift_move_error", "shift_exact")
+            "sliding_precision", "sliding_offset_x", "shift_move_error", "shift_exact",
+            "first_surface_moved", "all_surfaces_moved")
     rows = {name: {k: [] for k in keys} for name in models}
     share, still = [], []
     for index in range(count):
@@ -179,6 +201,12 @@ def headroom(
             rows[name]["sliding_offset_x"].append([_offset_x(d, s) for d, s in
                                                    zip(drawn, sliding, strict=True)])
             rows[name]["shift_move_error"].append(shift_move_error(model, x, move_x))
+            for key, every in (("first_surface_moved", False), ("all_surfaces_moved", True)):
+                fused = observed_surfaces_moved(seq.inputs, sliding, shifts, every_view=every)
+                with torch.no_grad():
+                    logits = model(torch.from_numpy(fused[None].astype(np.float32)))[0]
+                decided = torch.sigmoid(logits).numpy() >= getattr(model, "threshold", 0.5)
+                rows[name][key].append(grid.jaccard(decided, seq.targets))
             if getattr(model, "shift_memory", None) is not None:
                 with torch.no_grad(), standing_at(model, cells):
                     exact = torch.sigmoid(model(x))[0].numpy() >= getattr(model, "threshold", 0.5)
@@ -248,6 +276,11 @@ def main(argv: list[str] | None = None) -> int:
               f"   {found.mean():.3f} ({found[-6:].mean():.3f})"
               f"    {prec.mean():.3f} ({prec[-6:].mean():.3f})"
               f"  {_mean_over_sequences(dx):.2f} ({_mean_over_sequences(dx[-6:]):.2f})")
+    print(f"{'model':>24}  {'+ first surface moved':>21}  {'+ all surfaces moved':>20}")
+    for name, r in out["per_view"].items():
+        first, every = np.array(r["first_surface_moved"]), np.array(r["all_surfaces_moved"])
+        print(f"{name:>24}  {first.mean():.3f} ({first[-6:].mean():.3f})      "
+              f"{every.mean():.3f} ({every[-6:].mean():.3f})")
     print(f"sliding object's share of the target: {np.mean(out['sliding_share']):.3f}")
     still = np.array(out["slider_move_x"])
     for name, r in out["per_view"].items():

@@ -67,6 +67,34 @@ def test_own_slider_moved_carries_the_first_views_completion_to_where_the_slider
                                      strict=True))
 
 
+def test_surfaces_moved_adds_the_sliders_seen_voxels_where_the_slider_is():
+    from completion.headroom import observed_surfaces_moved
+
+    inputs = np.zeros((3, 40, 40, 40), dtype=bool)
+    sliding = np.zeros_like(inputs)
+    for v, i in enumerate((10, 14, 18)):  # the slider moves 4 voxels along x per view
+        sliding[v, i:i + 3, 5:8, 5:8] = True
+        inputs[v, i:i + 3, 5:8, 5] = True  # its front face is seen
+        inputs[v, i + 1, 6, 7] = v == 1  # one voxel of its back only in view 1
+    inputs[:, 30, 30, 30] = True  # the front object's voxel, never carried
+    shifts = [np.array([4 * v, 0, 0]) for v in range(3)]
+    first = observed_surfaces_moved(inputs, sliding, shifts, every_view=False)
+    every = observed_surfaces_moved(inputs, sliding, shifts, every_view=True)
+    assert np.array_equal(first[0], inputs[0]) and np.array_equal(every[0], inputs[0])
+    # view 0's face lands on each later view's face: nothing new, nothing off the slider
+    assert np.array_equal(first, inputs)
+    # only "every view" carries view 1's back voxel on into view 2
+    assert not first[2, 19, 6, 7] and every[2, 19, 6, 7] and every[1, 15, 6, 7]
+    assert every.sum() == first.sum() + 1 and (every[:, 30, 30, 30]).all()
+
+    out = headroom({"surface": _Surface()}, split="test", count=2, views=6)["per_view"]["surface"]
+    # a model that draws its input: the carried surface lands on the slider, so it only gains
+    assert out["first_surface_moved"][0] == pytest.approx(out["alone"][0])
+    assert all(f >= a - 1e-9 for f, a in zip(out["first_surface_moved"], out["alone"],
+                                             strict=True))
+    assert np.mean(out["all_surfaces_moved"]) >= np.mean(out["first_surface_moved"]) - 1e-9
+
+
 def test_headroom_cli_prints_the_table_and_rejects_a_missing_model(capsys, tmp_path):
     with pytest.raises(SystemExit):
         main(["--models", str(tmp_path / "missing.pt")])
@@ -75,6 +103,7 @@ def test_headroom_cli_prints_the_table_and_rejects_a_missing_model(capsys, tmp_p
     out = capsys.readouterr().out
     assert "single_view" in out and "sliding object's share" in out and "own slider moved" in out
     assert "slider precision" in out and "slider |dx|" in out
+    assert "first surface moved" in out and "all surfaces moved" in out
     assert main(["--models", "single_view", "--count", "1", "--threshold", "0.99"]) == 0
     assert capsys.readouterr().out != out  # a stricter threshold draws fewer voxels
     for bad in ("1", "0", "half"):
