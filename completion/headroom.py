@@ -30,6 +30,9 @@ moved by its true translation, from the first view only ("+ first surface moved"
 view so far ("+ all surfaces moved": registered fusion of the slider's observations). Where the
 second is no better than the first, the few degrees the slider turns while it moves across the
 image tell a completer nothing more, and a memory of observations cannot beat one of completions.
+"slider completed in view 0" is the Jaccard of each model's completion of the slider in the first
+view (its voxels within two voxels of the slider) with the slider's truth: all a memory can carry;
+a last line gives the slider's median size in that view's grid.
 
     python -m completion.headroom      # shipped single_view and mvp, test split, seed 0
     python -m completion.headroom --models mvp,runs/w/mvp.pt --split val --count 5
@@ -160,13 +163,17 @@ def headroom(
     voxels), and the share of the sliding object's voxels it predicts
     ("sliding_recall"), the share of its voxels around the slider that are the slider's
     ("sliding_precision") and the x distance of their centre from the slider's
-    ("sliding_offset_x", NaN where it predicts none there); and per view the sliding object's
-    share of the target."""
+    ("sliding_offset_x", NaN where it predicts none there); the model run on inputs with the
+    slider's observed surface moved in from the first view or from every view so far
+    ("first_surface_moved", "all_surfaces_moved": :func:`observed_surfaces_moved`), and its
+    completion of the slider in the first view against the slider's truth ("first_view_slider",
+    one value); per view the sliding object's share of the target, and the slider's median
+    extent along i, j, k and voxel count in the first view ("slider_size")."""
     keys = ("alone", "with_sliding_truth", "own_slider_moved", "sliding_recall",
             "sliding_precision", "sliding_offset_x", "shift_move_error", "shift_exact",
-            "first_surface_moved", "all_surfaces_moved")
+            "first_surface_moved", "all_surfaces_moved", "first_view_slider")
     rows = {name: {k: [] for k in keys} for name in models}
-    share, still = [], []
+    share, still, size = [], [], []
     for index in range(count):
         seq = make_sequence("slide_behind", split, index, seed, views=views)
         x = torch.from_numpy(seq.inputs[None].astype(np.float32))
@@ -177,6 +184,7 @@ def headroom(
             sliding.append(voxels & seq.targets[v])
         sliding = np.stack(sliding)
         share.append(sliding.sum((1, 2, 3)) / seq.targets.sum((1, 2, 3)))
+        size.append([np.ptp(i) + 1 for i in np.nonzero(sliding[0])] + [sliding[0].sum()])
         near_first = ndimage.binary_dilation(sliding[0], iterations=NEAR)
         around = [ndimage.binary_dilation(s, iterations=AROUND) & ~(t & ~s)
                   for s, t in zip(sliding, seq.targets, strict=True)]
@@ -191,6 +199,7 @@ def headroom(
             rows[name]["alone"].append(grid.jaccard(pred, seq.targets))
             rows[name]["with_sliding_truth"].append(grid.jaccard(pred | sliding, seq.targets))
             own = pred[0] & near_first  # the model's completion of the slider in the first view
+            rows[name]["first_view_slider"].append([grid.jaccard(own, sliding[0])])
             carried = np.stack([pred[v] | moved(own, shifts[v]) for v in range(len(seq))])
             rows[name]["own_slider_moved"].append(grid.jaccard(carried, seq.targets))
             found = (pred & sliding).sum((1, 2, 3)) / np.maximum(sliding.sum((1, 2, 3)), 1)
@@ -218,7 +227,8 @@ def headroom(
     return {"split": split, "count": count, "seed": seed, "shift_quantum": shift_quantum,
             "per_view": per_view,
             "slider_move_x": np.mean(still, axis=0).round(4).tolist(),
-            "sliding_share": np.mean(share, axis=0).round(4).tolist()}  # fmt: skip
+            "sliding_share": np.mean(share, axis=0).round(4).tolist(),
+            "slider_size": np.median(size, axis=0).tolist()}  # fmt: skip
 
 
 def _probability(text: str) -> float:
@@ -276,12 +286,17 @@ def main(argv: list[str] | None = None) -> int:
               f"   {found.mean():.3f} ({found[-6:].mean():.3f})"
               f"    {prec.mean():.3f} ({prec[-6:].mean():.3f})"
               f"  {_mean_over_sequences(dx):.2f} ({_mean_over_sequences(dx[-6:]):.2f})")
-    print(f"{'model':>24}  {'+ first surface moved':>21}  {'+ all surfaces moved':>20}")
+    print(f"{'model':>24}  {'+ first surface moved':>21}  {'+ all surfaces moved':>20}  "
+          f"{'slider completed in view 0':>26}")  # fmt: skip
     for name, r in out["per_view"].items():
         first, every = np.array(r["first_surface_moved"]), np.array(r["all_surfaces_moved"])
         print(f"{name:>24}  {first.mean():.3f} ({first[-6:].mean():.3f})      "
-              f"{every.mean():.3f} ({every[-6:].mean():.3f})")
+              f"{every.mean():.3f} ({every[-6:].mean():.3f})  "
+              f"{r['first_view_slider'][0]:>26.3f}")  # fmt: skip
     print(f"sliding object's share of the target: {np.mean(out['sliding_share']):.3f}")
+    *extent, voxels = out["slider_size"]
+    print("the slider in view 0 (medians): {:g} x {:g} x {:g} voxels across, {:g} voxels".format(
+        *extent, voxels))  # fmt: skip
     still = np.array(out["slider_move_x"])
     for name, r in out["per_view"].items():
         error = np.array(r["shift_move_error"])  # (H, L)

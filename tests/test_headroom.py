@@ -93,6 +93,12 @@ def test_surfaces_moved_adds_the_sliders_seen_voxels_where_the_slider_is():
     assert all(f >= a - 1e-9 for f, a in zip(out["first_surface_moved"], out["alone"],
                                              strict=True))
     assert np.mean(out["all_surfaces_moved"]) >= np.mean(out["first_surface_moved"]) - 1e-9
+    # a model that draws only what it sees completes part of the slider; one that draws nothing
+    # completes none of it
+    both = headroom({"surface": _Surface(), "empty": _Constant(-1)}, split="test", count=2, views=3)
+    assert 0.0 < both["per_view"]["surface"]["first_view_slider"][0] < 1.0
+    assert both["per_view"]["empty"]["first_view_slider"] == [0.0]
+    assert len(both["slider_size"]) == 4 and all(n > 0 for n in both["slider_size"])
 
 
 def test_headroom_cli_prints_the_table_and_rejects_a_missing_model(capsys, tmp_path):
@@ -104,6 +110,7 @@ def test_headroom_cli_prints_the_table_and_rejects_a_missing_model(capsys, tmp_p
     assert "single_view" in out and "sliding object's share" in out and "own slider moved" in out
     assert "slider precision" in out and "slider |dx|" in out
     assert "first surface moved" in out and "all surfaces moved" in out
+    assert "slider completed in view 0" in out and "voxels across" in out
     assert main(["--models", "single_view", "--count", "1", "--threshold", "0.99"]) == 0
     assert capsys.readouterr().out != out  # a stricter threshold draws fewer voxels
     for bad in ("1", "0", "half"):
