@@ -101,6 +101,29 @@ def test_surfaces_moved_adds_the_sliders_seen_voxels_where_the_slider_is():
     assert len(both["slider_size"]) == 4 and all(n > 0 for n in both["slider_size"])
 
 
+def test_completions_averaged_carries_the_mean_of_the_views_that_show_the_slider():
+    from completion.headroom import completions_averaged
+
+    inputs = np.zeros((3, 40, 40, 40), dtype=bool)
+    sliding = np.zeros_like(inputs)
+    probability = np.zeros(inputs.shape, dtype=np.float32)
+    for v, i in enumerate((10, 14, 18)):
+        sliding[v, i : i + 3, 5:8, 5:8] = True
+        inputs[v, i : i + 3, 5:8, 5] = v < 2  # seen in views 0 and 1, hidden in view 2
+    probability[0, 10:13, 5:8, 5:8] = 0.9  # view 0 completes the whole slider
+    probability[1, 14:17, 5:8, 5:7] = 0.9  # view 1 misses its back layer
+    probability[1, 30, 30, 30] = 0.9  # and draws a voxel far from it: never carried
+    shifts = [np.array([4 * v, 0, 0]) for v in range(3)]
+    out = completions_averaged(probability, sliding, inputs, shifts, 0.6)
+    assert np.array_equal(out[0], probability[0] >= 0.6)
+    # the mean of 0.9 and 0.9 keeps the front layers, the mean of 0.9 and 0 loses the back one
+    assert out[1, 14:17, 5:8, 5:7].all() and not out[1, 14:17, 5:8, 7].any()
+    assert out[2, 18:21, 5:8, 5:7].all() and out.sum() == 27 + 18 + 1 + 18
+    assert not out[2, 30, 30, 30]
+    assert np.array_equal(completions_averaged(probability, sliding, inputs, shifts, 0.4)[2],
+                          sliding[2])  # the mean 0.45 passes a lower threshold
+
+
 def test_headroom_cli_prints_the_table_and_rejects_a_missing_model(capsys, tmp_path):
     with pytest.raises(SystemExit):
         main(["--models", str(tmp_path / "missing.pt")])
@@ -111,6 +134,7 @@ def test_headroom_cli_prints_the_table_and_rejects_a_missing_model(capsys, tmp_p
     assert "slider precision" in out and "slider |dx|" in out
     assert "first surface moved" in out and "all surfaces moved" in out
     assert "slider completed in view 0" in out and "voxels across" in out
+    assert "completions averaged" in out
     assert main(["--models", "single_view", "--count", "1", "--threshold", "0.99"]) == 0
     assert capsys.readouterr().out != out  # a stricter threshold draws fewer voxels
     for bad in ("1", "0", "half"):
