@@ -187,7 +187,9 @@ def headroom(
     ("sliding_precision") and the x distance of their centre from the slider's
     ("sliding_offset_x", NaN where it predicts none there); the model run on inputs with the
     slider's observed surface moved in from the first view or from every view so far
-    ("first_surface_moved", "all_surfaces_moved": :func:`observed_surfaces_moved`), and its
+    ("first_surface_moved", "all_surfaces_moved": :func:`observed_surfaces_moved`), its
+    prediction with every view's completion of the slider averaged in ("completions_averaged":
+    :func:`completions_averaged`), and its
     completion of the slider in the first view against the slider's truth ("first_view_slider",
     one value); per view the sliding object's share of the target, and the slider's median
     extent along i, j, k and voxel count in the first view ("slider_size")."""
@@ -221,10 +223,10 @@ def headroom(
                 probability = torch.sigmoid(model(x))[0].numpy()
             threshold = getattr(model, "threshold", 0.5)
             pred = probability >= threshold
+            rows[name]["alone"].append(grid.jaccard(pred, seq.targets))
             rows[name]["completions_averaged"].append(grid.jaccard(
                 completions_averaged(probability, sliding, seq.inputs, shifts, threshold),
                 seq.targets))  # fmt: skip
-            rows[name]["alone"].append(grid.jaccard(pred, seq.targets))
             rows[name]["with_sliding_truth"].append(grid.jaccard(pred | sliding, seq.targets))
             own = pred[0] & near_first  # the model's completion of the slider in the first view
             rows[name]["first_view_slider"].append([grid.jaccard(own, sliding[0])])
@@ -242,7 +244,7 @@ def headroom(
                 fused = observed_surfaces_moved(seq.inputs, sliding, shifts, every_view=every)
                 with torch.no_grad():
                     logits = model(torch.from_numpy(fused[None].astype(np.float32)))[0]
-                decided = torch.sigmoid(logits).numpy() >= getattr(model, "threshold", 0.5)
+                decided = torch.sigmoid(logits).numpy() >= threshold
                 rows[name][key].append(grid.jaccard(decided, seq.targets))
             if getattr(model, "shift_memory", None) is not None:
                 with torch.no_grad(), standing_at(model, cells):
