@@ -127,13 +127,18 @@ def moved(voxels: np.ndarray, shift: np.ndarray) -> np.ndarray:
     return ndimage.shift(voxels.astype(np.uint8), shift, order=0, mode="constant", cval=0) > 0
 
 
+def slider_seen(inputs: np.ndarray, sliding: np.ndarray) -> np.ndarray:
+    """(L, 40, 40, 40) bool: the slider's observed voxels, the input voxels within one voxel
+    of its truth."""
+    return inputs & np.stack([ndimage.binary_dilation(s) for s in sliding])
+
+
 def observed_surfaces_moved(inputs: np.ndarray, sliding: np.ndarray, shifts: list,
                             *, every_view: bool) -> np.ndarray:
-    """(L, 40, 40, 40) bool: ``inputs`` with the slider's observed voxels (input voxels within
-    one voxel of its truth) of view 0 (or of every view u ≤ v) moved into each view v by the
-    slider's translation between them."""
-    seen = [i & ndimage.binary_dilation(s, iterations=1) for i, s in zip(inputs, sliding,
-                                                                          strict=True)]
+    """(L, 40, 40, 40) bool: ``inputs`` with the slider's observed voxels (:func:`slider_seen`)
+    of view 0 (or of every view u ≤ v) moved into each view v by the slider's translation
+    between them."""
+    seen = slider_seen(inputs, sliding)
     out = inputs.copy()
     for v in range(len(inputs)):
         for u in range(v + 1 if every_view else 1):
@@ -148,7 +153,7 @@ def completions_averaged(probability: np.ndarray, sliding: np.ndarray, inputs: n
     slider shows at least half the surface it shows in view 0, each moved by the slider's
     translation from u to v, decided at ``threshold``: an exact memory that averages what every
     view completed of the slider."""
-    seen = [(i & ndimage.binary_dilation(s)).sum() for i, s in zip(inputs, sliding, strict=True)]
+    seen = slider_seen(inputs, sliding).sum((1, 2, 3))
     near = [probability[u] * ndimage.binary_dilation(sliding[u], iterations=NEAR)
             for u in range(len(inputs))]  # fmt: skip
     out = probability >= threshold
@@ -218,6 +223,9 @@ def headroom(
         move_x = centre_x - centre_x[0]
         cells = torch.from_numpy(centre_x / 2)  # where the slider is, in 2-voxel cells
         still.append(np.abs(move_x))
+        fused = {key: torch.from_numpy(observed_surfaces_moved(
+            seq.inputs, sliding, shifts, every_view=every)[None].astype(np.float32))
+            for key, every in (("first_surface_moved", False), ("all_surfaces_moved", True))}
         for name, model in models.items():
             with torch.no_grad():
                 probability = torch.sigmoid(model(x))[0].numpy()
@@ -240,15 +248,13 @@ def headroom(
             rows[name]["sliding_offset_x"].append([_offset_x(d, s) for d, s in
                                                    zip(drawn, sliding, strict=True)])
             rows[name]["shift_move_error"].append(shift_move_error(model, x, move_x))
-            for key, every in (("first_surface_moved", False), ("all_surfaces_moved", True)):
-                fused = observed_surfaces_moved(seq.inputs, sliding, shifts, every_view=every)
+            for key, inputs in fused.items():
                 with torch.no_grad():
-                    logits = model(torch.from_numpy(fused[None].astype(np.float32)))[0]
-                decided = torch.sigmoid(logits).numpy() >= threshold
+                    decided = torch.sigmoid(model(inputs))[0].numpy() >= threshold
                 rows[name][key].append(grid.jaccard(decided, seq.targets))
             if getattr(model, "shift_memory", None) is not None:
                 with torch.no_grad(), standing_at(model, cells):
-                    exact = torch.sigmoid(model(x))[0].numpy() >= getattr(model, "threshold", 0.5)
+                    exact = torch.sigmoid(model(x))[0].numpy() >= threshold
                 rows[name]["shift_exact"].append(grid.jaccard(exact, seq.targets))
     per_view = {
         name: {k: _mean_over_sequences(v).round(4).tolist() if v else [] for k, v in r.items()}
