@@ -31,12 +31,11 @@ from typing import Any, Literal
 import torch
 
 from completion.cli import name_list
+from completion.config import DEFAULT_CONFIGS, default_config
 from completion.model import (
-    DEFAULT_CONFIGS,
     WEIGHTS_DIR,
     CompletionModel,
     build_model,
-    default_config,
     load_model,
     state_nbytes,
     state_to_bytes,

@@ -40,13 +40,11 @@ zero contribution instead of producing inf/NaN.
 from __future__ import annotations
 
 import math
-from typing import Literal, get_args
 
 import torch
 from torch import Tensor, nn
 
-Kernel = Literal["softmax", "relu"]
-KERNELS: tuple[str, ...] = get_args(Kernel)
+from completion.config import KERNELS, Kernel
 
 RELU_KERNEL_EPS = 1e-3
 """Added to ReLU features so that the normaliser φ(q)·z is strictly positive."""
@@ -231,22 +229,17 @@ def causal_softmax_attention(q: Tensor, k: Tensor, v: Tensor) -> Tensor:
     return block_causal_softmax_attention(q, k, v).squeeze(-2)
 
 
-def block_causal_softmax_attention(
-    q: Tensor, k: Tensor, v: Tensor, *, near: Tensor | None = None
-) -> Tensor:
+def block_causal_softmax_attention(q: Tensor, k: Tensor, v: Tensor) -> Tensor:
     """Exact softmax attention, causal over views and full within a view.
 
     q, k: (..., L, P, E); v: (..., L, P, F) -> (..., L, P, F): position (i, p) weighs every
-    (j, p') with j ≤ i by softmax(q·k/√E); with ``near`` ((P, P) bool, e.g.
-    :func:`place_neighbours`) only the places p' near p.
+    (j, p') with j ≤ i by softmax(q·k/√E).
     """
     n, places = q.shape[-3], q.shape[-2]
     view = torch.arange(n, device=q.device).repeat_interleave(places)  # (L·P,)
     q, k, v = (x.flatten(-3, -2) for x in (q, k, v))  # (..., L·P, ·)
     scores = (q @ k.transpose(-1, -2)) * q.shape[-1] ** -0.5  # (..., L·P, L·P)
     future = view.unsqueeze(1) < view.unsqueeze(0)
-    if near is not None:
-        future = future | ~near.repeat(n, n)
     scores = scores.masked_fill(future, float("-inf"))
     out = torch.softmax(scores, dim=-1) @ v
     return out.unflatten(-2, (n, places))
@@ -298,83 +291,3 @@ class FeatureMap(nn.Module):
 
     def extra_repr(self) -> str:
         return f"dim={self.dim}, kernel={self.kernel!r}, n_features={self.n_features}"
-
-
-Window = int | tuple[int, int, int]
-"""How far a place reads, in places: one reach for all three axes, or (i, j, k) reaches."""
-
-
-def _reach(window: Window) -> tuple[int, int, int]:
-    reach = (window,) * 3 if isinstance(window, int) else tuple(int(w) for w in window)
-    if len(reach) != 3 or min(reach) < 0:
-        raise ValueError(f"window must be a reach >= 0 or three of them, got {window!r}")
-    return reach  # type: ignore[return-value]
-
-
-def neighbourhood_sum(x: Tensor, side: int, window: Window) -> Tensor:
-    """Sum over each place's (2wi+1)×(2wj+1)×(2wk+1) neighbourhood (zero outside the volume),
-    (wi, wj, wk) = ``window`` (an int is the same reach along all three axes).
-
-    x: (..., P, F) with P = side³ places in (i, j, k) order -> (..., P, F).
-
-    The box is separable: one sum of shifted slices along each axis in turn, on the
-    features-last layout. That measured 20–50× faster here than one ``avg_pool3d`` over the box
-    (a place path's values carry thousands of features: 894 ms against 40 ms for one training
-    batch's keys × values, reach (4, 1, 1)).
-    """
-    lead, features = x.shape[:-2], x.shape[-1]
-    if x.shape[-2] != side**3:
-        raise ValueError(f"expected {side**3} places (side {side}), got {x.shape[-2]}")
-    reach = tuple(min(w, side - 1) for w in _reach(window))  # a reach past the volume reads all
-    cube = x.reshape(-1, side, side, side, features)
-    for axis, w in zip((1, 2, 3), reach, strict=True):
-        if w == 0:
-            continue
-        out = cube.clone()
-        for d in range(1, w + 1):  # what lies d places further and d places nearer
-            out.narrow(axis, 0, side - d).add_(cube.narrow(axis, d, side - d))
-            out.narrow(axis, d, side - d).add_(cube.narrow(axis, 0, side - d))
-        cube = out
-    return cube.reshape(*lead, side**3, features)
-
-
-def local_causal_linear_attention(
-    phi_q: Tensor, phi_k: Tensor, v: Tensor, *, side: int, window: Window
-) -> Tensor:
-    """Causal over views, local in space: place p of view i reads every place within ``window``
-    (Chebyshev distance, in places; per axis with three reaches) of p in views j ≤ i.
-    phi_q, phi_k: (..., L, P, M); v: (..., L, P, F) -> (..., L, P, F) float32. The memory is
-    one (S, z) per place: its size depends on P, never on L.
-    """
-    phi_q, phi_k, v = phi_q.to(STATE_DTYPE), phi_k.to(STATE_DTYPE), v.to(STATE_DTYPE)
-    m, f = phi_k.shape[-1], v.shape[-1]
-    kv = (phi_k.unsqueeze(-1) * v.unsqueeze(-2)).flatten(-2)  # (..., L, P, M·F)
-    s = torch.cumsum(neighbourhood_sum(kv, side, window), dim=-3).unflatten(-1, (m, f))
-    z = torch.cumsum(neighbourhood_sum(phi_k, side, window), dim=-3)  # (..., L, P, M)
-    num = (phi_q.unsqueeze(-1) * s).sum(dim=-2)  # (..., L, P, F)
-    den = (phi_q * z).sum(dim=-1)
-    return _safe_divide(num, den)
-
-
-def local_linear_attention_step(
-    phi_q: Tensor, phi_k: Tensor, v: Tensor, s: Tensor, z: Tensor, *, side: int, window: Window
-) -> tuple[Tensor, Tensor, Tensor]:
-    """One view of :func:`local_causal_linear_attention`. phi_q, phi_k: (..., P, M); v:
-    (..., P, F); s: (..., P, M, F); z: (..., P, M) -> (out (..., P, F), new s, new z)."""
-    phi_q, phi_k = phi_q.to(STATE_DTYPE), phi_k.to(STATE_DTYPE)
-    m, f = phi_k.shape[-1], v.shape[-1]
-    kv = (phi_k.unsqueeze(-1) * v.to(STATE_DTYPE).unsqueeze(-2)).flatten(-2)
-    s = s + neighbourhood_sum(kv, side, window).unflatten(-1, (m, f))
-    z = z + neighbourhood_sum(phi_k, side, window)
-    num = (phi_q.unsqueeze(-1) * s).sum(dim=-2)
-    den = (phi_q * z).sum(dim=-1)
-    return _safe_divide(num, den), s, z
-
-
-def place_neighbours(side: int, window: Window, *, device: torch.device | None = None) -> Tensor:
-    """(P, P) bool: places within ``window`` of each other (Chebyshev distance, in places; with
-    three reaches, within each along its axis)."""
-    idx = torch.arange(side, device=device)
-    ijk = torch.stack(torch.meshgrid(idx, idx, idx, indexing="ij"), dim=-1).reshape(-1, 3)
-    reach = torch.tensor(_reach(window), device=device)
-    return ((ijk.unsqueeze(1) - ijk.unsqueeze(0)).abs() <= reach).all(dim=-1)

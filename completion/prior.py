@@ -60,7 +60,8 @@ def _targets(split: dict, condition: str, chunk: int = 64):
 
 def build_prior(train: dict, val: dict) -> Prior:
     """Per condition, the voxel-wise mean of the training targets, thresholded for the best mean
-    validation Jaccard. ``train`` and ``val`` as :func:`completion.train.load_split` returns them.
+    validation Jaccard. ``train`` and ``val`` as :func:`completion.validation.load_split`
+    returns them.
     """
     means, thresholds, meta = {}, {}, {"train_grids": {}, "val_jaccard": {}}
     for condition in sorted(set(train["condition"])):
@@ -115,7 +116,7 @@ def load_prior(path: str | Path) -> Prior:
 
 def main(argv: list[str] | None = None) -> int:
     from completion.scenes import CONDITIONS
-    from completion.train import load_split
+    from completion.validation import load_split
 
     argv = sys.argv[1:] if argv is None else argv
     p = argparse.ArgumentParser(prog="python -m completion.prior", description=__doc__,

@@ -1,42 +1,41 @@
 """Train a completion model on simulated sequences of the five conditions.
 
-Example (see completion/weights/README.md for the exact runs behind the shipped weights)::
+Example (``completion/weights/recipe.sh`` is the exact chain behind the shipped weights)::
 
-    python -m completion.train --model single_view --steps 1500 \\
-        --out completion/weights/single_view.pt
+    python -m completion.train --model single_view --steps 1500 --out runs/single_view.pt
     python -m completion.train --model mvp --steps 1000 \\
-        --init-from completion/weights/single_view.pt --out completion/weights/mvp.pt
+        --init-from runs/single_view.pt --out runs/mvp.pt
 
+``--model X`` alone builds the shipped architecture of X
+(:data:`completion.config.DEFAULT_CONFIGS`).
 Shards are read from ``--train-dir`` / ``--val-dir``; sequences that are missing are generated
 first (``--train-count`` per condition with seed ``--data-seed`` for training, ``--val-count``
 with seed 0 for validation). Loss: binary cross-entropy with logits and ``pos_weight``, plus
 ``--jaccard-weight`` × (1 − soft Jaccard) per view when asked (the evaluation's metric is the
 Jaccard of each view, which BCE weighs by object size instead), the views weighed alike or,
-with ``--late-weight``, more the later they come, and, with ``--focus-model``, each voxel by how
-wrong a Single-View model is on it (what only the memory can supply); Adam with
-a cosine decay over ``--steps`` (the budget: the same command repeats the same run);
-``--minutes`` only caps the wall time. Each step draws ``--batch-size`` sequences (a window of
-``--views`` consecutive views) and mirrors each in the camera's x and/or y axis. Every
-``--val-every`` steps and at the end the model is scored on the validation set (Jaccard per
-condition over the views, at several thresholds); the best checkpoint by mean Jaccard at 0.5 is
+with ``--late-weight``, more the later they come; Adam with a cosine decay over ``--steps`` (the
+budget: the same command repeats the same run); ``--minutes`` only caps the wall time. Each step
+draws ``--batch-size`` sequences (a window of ``--views`` consecutive views) and mirrors or
+rolls each in the camera's x and y axes (``--augment``). The memory's options (``--blank-local``,
+``--hide-views``, ``--hide-context``) blank views from one tower or both so that the memory must
+carry the shape. Every ``--val-every`` steps and at the end the model is scored on the
+validation set (:mod:`completion.validation`); the best checkpoint by mean Jaccard at 0.5 is
 written to ``--out`` (fp16 weights, loaded back to fp32) with its figures (with ``--ema``, a
-moving average of the weights is what is validated and written instead of the raw weights),
-and ``<run-dir>/last.pt`` holds the full training state (weights, optimizer, sampler, average)
-for ``--resume``. ``--init-from`` starts a multi-view model from a trained Single-View U-Net.
+moving average of the weights is what is validated and written), and ``<run-dir>/last.pt``
+(default: a folder beside ``--out`` named after it) holds the full training state for
+``--resume``. ``--init-from`` starts from another checkpoint (:func:`warm_start`).
 
-One decision threshold for all models is then chosen on the validation sweeps, and the
-per-view validation Jaccard of a model, with its memory and with every view alone, shows what
-the memory adds::
+Subcommands (:mod:`completion.validation`)::
 
-    python -m completion.train select-threshold completion/weights/*.pt
-    python -m completion.train per-view completion/weights/mvp.pt
+    python -m completion.train select-threshold completion/weights/*.pt   # one threshold for all
+    python -m completion.train per-view completion/weights/mvp.pt data/val  # what the memory adds
+    python -m completion.train model-card completion/weights/*.pt          # the card's tables
 """
 
 from __future__ import annotations
 
 import argparse
 import copy
-import hashlib
 import json
 import math
 import random
@@ -50,125 +49,25 @@ import torch
 from torch.nn import functional as F
 
 from completion.cli import one_name
-from completion.data import generate, load_sequence, parse_conditions
+from completion.config import DEFAULT_CONFIGS, ModelConfig, default_config
+from completion.data import generate, parse_conditions
 from completion.distributed import World, setup
-from completion.grid import jaccard
-from completion.model import (
-    DEFAULT_CONFIGS,
-    CompletionModel,
-    ModelConfig,
-    build_model,
-    default_config,
-    load_checkpoint,
-    read_checkpoint,
-    save_checkpoint,
-)
+from completion.model import CompletionModel, build_model, read_checkpoint, save_checkpoint
 from completion.scenes import CONDITIONS
+from completion.validation import load_split, model_card, per_view, select_threshold, unpack
+from completion.validation import validate as validate_model
 
 AUGMENTATIONS = ("mirror", "roll", "none")
-THRESHOLDS = tuple(round(x, 2) for x in np.arange(0.2, 0.81, 0.05))
 
 
-def load_split(folder: Path, conditions: list[str], split: str) -> dict:
-    """Every shard of the given conditions in ``folder``, bit-packed in memory.
-
-    ``packed``: uint8 (N, 2, L, 40, 40, 5), inputs then targets with the last axis packed 8 voxels
-    to a byte (a 4,000-sequence set takes 0.8 GB instead of 6 GB); ``condition``: one name per
-    sequence. The packed array is cached beside the shards (``.packed-*.npz``) so the next run
-    starts in seconds; the cache is keyed by the name, size and modification time of every shard
-    it holds, so regenerated shards are read again rather than taken from a stale cache.
-    """
-    paths = _shard_paths(folder, conditions, split)
-    stamps = (f"{p.name} {p.stat().st_size} {p.stat().st_mtime_ns}" for p in paths)
-    key = hashlib.sha1("\n".join(stamps).encode()).hexdigest()[:12]
-    cache = folder / f".packed-{split}-{key}.npz"
-    if cache.is_file():
-        with np.load(cache, allow_pickle=False) as z:
-            return {"packed": z["packed"], "condition": [str(c) for c in z["condition"]]}
-    from tqdm import tqdm
-
-    seqs = (load_sequence(p) for p in paths)
-    packed, names = [], []
-    for s in tqdm(seqs, total=len(paths), desc=f"load {split}", unit="seq", leave=False):
-        packed.append(np.packbits(np.stack([s.inputs, s.targets]), axis=-1))
-        names.append(s.meta["condition"])
-    out = {"packed": np.stack(packed), "condition": names}
-    tmp = cache.with_name(cache.name + ".tmp.npz")
-    np.savez(tmp, packed=out["packed"], condition=np.array(names))
-    tmp.replace(cache)
-    return out
+def draw_batch(n: int, size: int, gen: torch.Generator) -> np.ndarray:
+    """``size`` sequence indices in [0, n), sorted, drawn uniformly with replacement."""
+    return torch.randint(0, n, (size,), generator=gen).sort().values.numpy()
 
 
-def _shard_paths(folder: Path, conditions: list[str], split: str) -> list[Path]:
-    """The shards of ``conditions`` in ``folder``, in the order :func:`load_split` packs them."""
-    paths = sorted(p for c in conditions for p in folder.glob(f"{c}_{split}_*.npz"))
-    if not paths:
-        raise ValueError(f"no {split} shards for {conditions} in {folder}")
-    return paths
-
-
-def slider_cells(folder: Path, conditions: list[str], split: str) -> np.ndarray:
-    """(N, L) float32 in :func:`load_split`'s order: the sliding object's centre along i in each
-    view of every slide-behind sequence, in cells of the shift memory's level (2 voxels; a cell's
-    centre is a whole number), NaN for the other conditions (``--where-weight``)."""
-    from completion.headroom import slider_index  # the slider's pose is in each shard's meta
-
-    rows = []
-    for path in _shard_paths(folder, conditions, split):
-        if not path.name.startswith("slide_behind_"):
-            rows.append(None)
-            continue
-        seq = load_sequence(path)
-        rows.append([(slider_index(seq, v)[0] - 0.5) / 2 for v in range(len(seq))])
-    views = max((len(r) for r in rows if r is not None), default=0)
-    return np.array([[np.nan] * views if r is None else r for r in rows], dtype=np.float32)
-
-
-def where_loss(where: torch.Tensor, cells: torch.Tensor) -> torch.Tensor:
-    """Cross-entropy of where each shift-memory head stands, to write and to read, along i
-    (N, 2H, n probabilities; ``ShiftMemory.record``) against the slider's centre (N,) in cells,
-    a two-hot target between the cells either side of it; frames without a slider (NaN) are
-    left out (zero when none has one)."""
-    keep = ~torch.isnan(cells)
-    if not bool(keep.any()):
-        return where.sum() * 0.0
-    n = where.shape[-1]
-    c = cells[keep].clamp(0, n - 1)
-    lo = c.floor().long()
-    hi = (lo + 1).clamp(max=n - 1)
-    log_p = torch.log(where[keep].clamp_min(1e-6))  # (K, 2H, n)
-    heads = log_p.shape[1]
-
-    def at(i: torch.Tensor) -> torch.Tensor:
-        return log_p.gather(-1, i[:, None, None].expand(-1, heads, 1))[..., 0]  # (K, 2H)
-
-    frac = (c - lo)[:, None]
-    return -((1 - frac) * at(lo) + frac * at(hi)).mean()
-
-
-def unpack(packed: np.ndarray) -> tuple[torch.Tensor, torch.Tensor]:
-    """(B, 2, L, 40, 40, 5) packed -> inputs, targets as float tensors (B, L, 40, 40, 40)."""
-    grids = torch.from_numpy(np.unpackbits(packed, axis=-1)).float()
-    return grids[:, 0], grids[:, 1]
-
-
-def draw_batch(draw: torch.Tensor | None, n: int, size: int, gen: torch.Generator) -> np.ndarray:
-    """``size`` sequence indices in [0, n), sorted, drawn with replacement: uniformly when
-    ``draw`` is None (exactly the draws of the runs before ``--condition-weight``), else in
-    proportion to ``draw`` (one weight per sequence)."""
-    if draw is None:
-        pick = torch.randint(0, n, (size,), generator=gen)
-    else:
-        pick = torch.multinomial(draw, size, replacement=True, generator=gen)
-    return pick.sort().values.numpy()
-
-
-def augment(x: torch.Tensor, y: torch.Tensor, gen: torch.Generator, mode: str = "mirror",
-            cells: torch.Tensor | None = None):
+def augment(x: torch.Tensor, y: torch.Tensor, gen: torch.Generator, mode: str = "mirror"):
     """Random symmetries of the camera frame, per sequence, all views alike; never a flip of z,
-    the viewing direction, which decides what is seen and what is hidden. ``cells`` (B, L),
-    positions along i in cells of the (G/2)³ level (:func:`slider_cells`), are mirrored in place
-    with x.
+    the viewing direction, which decides what is seen and what is hidden.
 
     ``mirror``: flip x and/or y (grid axes i, j). ``roll``: flip both or neither, a 180° roll
     about the viewing axis: a proper rotation, so the sense in which the camera circles the
@@ -184,38 +83,7 @@ def augment(x: torch.Tensor, y: torch.Tensor, gen: torch.Generator, mode: str = 
         dims = [d for d, f in ((1, fx), (2, fy)) if f]  # axes of one (L, G, G, G) sequence
         if dims:
             x[b], y[b] = x[b].flip(dims), y[b].flip(dims)
-        if fx and cells is not None:
-            cells[b] = x.shape[2] // 2 - 1 - cells[b]
     return x, y
-
-
-def ensure_data(
-    folder: Path, split: str, conditions: list[str], count: int, seed: int, workers: int
-) -> None:
-    generate(conditions, split, count, seed=seed, out=folder, workers=workers)
-
-
-@torch.no_grad()
-def validate(
-    model: CompletionModel, val: dict, *, batch: int = 4, thresholds: tuple[float, ...] = THRESHOLDS
-) -> dict:
-    """Mean Jaccard over all views, per condition and threshold; also the mean over conditions."""
-    model.eval()
-    per_seq: dict[float, dict[str, list[float]]] = {t: {} for t in thresholds}
-    for start in range(0, len(val["packed"]), batch):
-        x, y = unpack(val["packed"][start : start + batch])
-        probs = torch.sigmoid(model(x))
-        y = y.bool()
-        for t in thresholds:
-            jac = jaccard((probs >= t).numpy(), y.numpy()).mean(1)  # (B,) mean over views
-            for k, cond in enumerate(val["condition"][start : start + batch]):
-                per_seq[t].setdefault(cond, []).append(float(jac[k]))
-    out = {}
-    for t in thresholds:
-        by_cond = {c: float(np.mean(v)) for c, v in sorted(per_seq[t].items())}
-        out[f"{t:.2f}"] = {"per_condition": by_cond, "mean": float(np.mean(list(by_cond.values())))}
-    model.train()
-    return out
 
 
 def warm_start(model: CompletionModel, path: Path) -> list[str]:
@@ -306,15 +174,6 @@ def soft_jaccard_loss(
     return (per_view if weights is None else per_view * weights).mean()
 
 
-def focus_weights(focus_logits: torch.Tensor, target: torch.Tensor, weight: float) -> torch.Tensor:
-    """Per-voxel BCE weights 1 + ``weight`` × |target − p|, p the focus model's probability
-    (``--focus-model``, a Single-View model shown what the local tower sees): the voxels that the
-    current view alone gets wrong (a slider hidden behind the front object, a curtained part, the
-    back of a panned object) weigh up to 1 + ``weight``, the ones it gets right 1, so the gradient
-    goes to what only the memory can supply."""
-    return 1 + weight * (target - torch.sigmoid(focus_logits.float())).abs()
-
-
 def view_weights(views: int, late: float) -> torch.Tensor:
     """(views,) loss weights rising linearly from the first view to the last, ``late`` times the
     first's, normalised to mean 1 (``--late-weight``; 1 = every view alike). In a pan the views
@@ -326,23 +185,10 @@ def view_weights(views: int, late: float) -> torch.Tensor:
     return ramp / ramp.mean()
 
 
-PLACE_PATH_PREFIXES = ("place_bridge.", "place_tower.", "shift_memory.")
-
-
-def param_groups(model: torch.nn.Module, lr: float, place_lr: float | None) -> list[dict]:
-    """Adam's parameter groups: one at ``lr``, or, with ``place_lr``, the place path of a
-    ``context="both"`` model (``place_bridge``, ``place_tower``) in a second group at that rate,
-    so a fresh path beside trained weights can learn faster than they move. Each group keeps
-    its ``base_lr`` for the schedule."""
-    named = list(model.named_parameters())
-    if place_lr is None:
-        return [{"params": [p for _, p in named], "base_lr": lr}]
-    place = [p for n, p in named if n.startswith(PLACE_PATH_PREFIXES)]
-    if not place:
-        raise ValueError("--place-lr needs a model with a place path (--config context=both)")
-    rest = [p for n, p in named if not n.startswith(PLACE_PATH_PREFIXES)]
-    return [{"params": rest, "lr": lr, "base_lr": lr},
-            {"params": place, "lr": place_lr, "base_lr": place_lr}]
+def run_config(args: argparse.Namespace) -> ModelConfig:
+    """The architecture a run trains: the shipped one of ``--model``, with ``--config``'s
+    changes, initialised from ``--seed``."""
+    return default_config(args.model, **args.config, seed=args.seed)
 
 
 def train(args: argparse.Namespace) -> dict:
@@ -365,11 +211,11 @@ def _train(args: argparse.Namespace, world: World, device: torch.device) -> dict
     conditions = args.conditions
     if world.main:  # one rank generates missing shards and writes the packed caches
         if args.train_count:
-            ensure_data(
-                args.train_dir, "train", conditions, args.train_count, args.data_seed, args.workers
-            )
+            generate(conditions, "train", args.train_count, seed=args.data_seed,
+                     out=args.train_dir, workers=args.workers)
         if args.val_count:
-            ensure_data(args.val_dir, "val", conditions, args.val_count, 0, args.workers)
+            generate(conditions, "val", args.val_count, seed=0, out=args.val_dir,
+                     workers=args.workers)
         train_set = load_split(args.train_dir, conditions, "train")
     world.barrier()
     if not world.main:  # from the packed cache rank 0 wrote
@@ -379,11 +225,6 @@ def _train(args: argparse.Namespace, world: World, device: torch.device) -> dict
     # each rank draws from its own part of the training sequences (all of them on one process)
     part = np.arange(world.rank, n_all, world.size)
     n_train = len(part)
-    # how often each of the rank's sequences is drawn: by its condition's --condition-weight
-    draw = None
-    if args.condition_weight:
-        draw = torch.tensor([args.condition_weight.get(train_set["condition"][i], 1.0)
-                             for i in part])  # fmt: skip
     if args.views > full_views:
         raise ValueError(f"--views {args.views} exceeds the {full_views} views in the shards")
     if args.batch_size > n_train:
@@ -393,13 +234,7 @@ def _train(args: argparse.Namespace, world: World, device: torch.device) -> dict
         print(f"train: {n_all} sequences{ranks}, val: {len(val_set['packed'])}, device {device}",
               flush=True)  # fmt: skip
 
-    config = default_config(args.model, **args.config, seed=args.seed)
-    model = build_model(config)
-    sliders = None  # the slider's centre per view, for --where-weight
-    if args.where_weight:
-        if model.shift_memory is None:
-            raise ValueError("--where-weight needs a shift memory (--config shift_heads=...)")
-        sliders = slider_cells(args.train_dir, conditions, "train")
+    model = build_model(run_config(args))
     if args.init_from:
         fresh = warm_start(model, args.init_from)
         if world.main and fresh:
@@ -411,14 +246,15 @@ def _train(args: argparse.Namespace, world: World, device: torch.device) -> dict
         net = torch.nn.parallel.DistributedDataParallel(
             model, device_ids=[device.index] if device.type == "cuda" else None
         )
-    opt = torch.optim.Adam(param_groups(model, args.lr, args.place_lr), lr=args.lr)
+    params = [{"params": list(model.parameters()), "base_lr": args.lr}]  # base_lr: the schedule's
+    opt = torch.optim.Adam(params, lr=args.lr)
     # an exponential moving average of the weights, when asked: what is validated and shipped
     ema = None
     if args.ema:
         from torch.optim.swa_utils import AveragedModel, get_ema_multi_avg_fn
 
         ema = AveragedModel(model, multi_avg_fn=get_ema_multi_avg_fn(args.ema), use_buffers=True)
-    run_dir = args.run_dir or Path("runs") / args.out.stem
+    run_dir = args.run_dir or args.out.with_suffix("")  # beside --out, never the working dir
     run_dir.mkdir(parents=True, exist_ok=True)
     last = run_dir / "last.pt"
     gen = torch.Generator().manual_seed(args.seed + 1_000_003 * world.rank)
@@ -451,13 +287,6 @@ def _train(args: argparse.Namespace, world: World, device: torch.device) -> dict
     weights = None
     if args.late_weight != 1:
         weights = view_weights(args.views, args.late_weight).to(device)
-    focus = None  # the Single-View model whose errors weigh the voxels (--focus-model)
-    if args.focus_model:
-        focus = load_checkpoint(args.focus_model, map_location=device)
-        if focus.config.kind != "single_view":
-            raise ValueError(f"--focus-model {args.focus_model} is a {focus.config.kind} model; "
-                             "expected a single_view checkpoint")
-        focus.requires_grad_(False)
     tic = time.perf_counter()
     budget_s = args.minutes * 60 if args.minutes else float("inf")
     autocast = torch.autocast(device.type, dtype=torch.bfloat16, enabled=args.precision == "bf16")
@@ -484,14 +313,11 @@ def _train(args: argparse.Namespace, world: World, device: torch.device) -> dict
         if wall() - elapsed_before > budget_s:
             print(f"stopping at step {step}: --minutes {args.minutes} reached", flush=True)
             break
-        pick = draw_batch(draw, n_train, args.batch_size, gen)
+        pick = draw_batch(n_train, args.batch_size, gen)
         idx = part[pick]
         first = int(torch.randint(0, full_views - args.views + 1, (1,), generator=gen))
         x, y = unpack(train_set["packed"][idx, :, first : first + args.views])
-        cells = None
-        if sliders is not None:
-            cells = torch.from_numpy(sliders[idx, first : first + args.views])
-        x, y = augment(x, y, gen, args.augment, cells)
+        x, y = augment(x, y, gen, args.augment)
         x, local = mask_views(x, gen, hide=args.hide_views, blank_local=args.blank_local,
                               hide_context=args.hide_context)
         x, y = x.to(device), y.to(device)
@@ -499,30 +325,16 @@ def _train(args: argparse.Namespace, world: World, device: torch.device) -> dict
         decay = 0.1 + 0.45 * (1 + math.cos(math.pi * step / args.steps))  # to a tenth
         for group in opt.param_groups:  # cosine decay over the step budget
             group["lr"] = group["base_lr"] * decay
-        drop = None
-        if args.drop_view_path:  # drawn only when asked, so older commands repeat exactly
-            drop = (torch.rand(x.shape[0], generator=gen) < args.drop_view_path).to(device)
-        if cells is not None:
-            model.shift_memory.record = []
         with autocast:
-            logits = net(x, local=local, drop_view_path=drop)
-        voxel = None
-        if focus is not None:
-            with torch.no_grad(), torch.autocast(device.type, dtype=torch.bfloat16):
-                voxel = focus_weights(focus(x if local is None else local), y, args.focus_weight)
-        if weights is None and voxel is None:
+            logits = net(x, local=local)
+        if weights is None:
             loss = F.binary_cross_entropy_with_logits(logits.float(), y, pos_weight=pos_weight)
-        else:  # per-voxel weights, then the per-view mean weighed along the sequence
+        else:  # the per-view mean weighed along the sequence
             loss = F.binary_cross_entropy_with_logits(logits.float(), y, pos_weight=pos_weight,
-                                                      weight=voxel, reduction="none")
-            loss = loss.mean((-3, -2, -1))
-            loss = (loss if weights is None else loss * weights).mean()
+                                                      reduction="none")
+            loss = (loss.mean((-3, -2, -1)) * weights).mean()
         if args.jaccard_weight:
             loss = loss + args.jaccard_weight * soft_jaccard_loss(logits.float(), y, weights)
-        if cells is not None:
-            (where,) = model.shift_memory.record
-            model.shift_memory.record = None
-            loss = loss + args.where_weight * where_loss(where, cells.flatten().to(device))
         opt.zero_grad(set_to_none=True)
         step += 1
         bar.update()
@@ -560,7 +372,7 @@ def _validate_and_save(args, model, ema, opt, val_set, generators, last, *, step
     checkpoint (``args.out``) and the full training state (``last``); returns the best mean
     validation Jaccard so far."""
     scored = model if ema is None else ema.module
-    scores = validate(scored, val_set)
+    scores = validate_model(scored, val_set)
     mean = scores["0.50"]["mean"]
     last_loss = float(loss.detach())
     history.append({"step": step, "epochs": round(epochs, 3), "val_jaccard": mean,
@@ -581,73 +393,6 @@ def _validate_and_save(args, model, ema, opt, val_set, generators, last, *, step
                     generator=generators[0], generators=generators, step=step, best=best,
                     history=history, wall_s=wall_s, skipped=skipped)
     return best
-
-
-@torch.no_grad()
-def per_view(path: Path, val_dir: Path, threshold: float | None = None) -> dict:
-    """Validation Jaccard per view index and condition, with the model's memory and with every
-    view fed alone (a sequence of one): what the memory adds, view by view."""
-    model = load_checkpoint(path).eval()
-    thr = float(threshold if threshold is not None else getattr(model, "threshold", 0.5))
-    val = load_split(val_dir, list(CONDITIONS), "val")
-    names = np.asarray(val["condition"])
-    out = {}
-    for condition in (c for c in CONDITIONS if c in set(names)):
-        x, y = unpack(val["packed"][np.flatnonzero(names == condition)])
-        b, n = x.shape[:2]
-        alone = model(x.reshape(b * n, 1, *x.shape[2:])).reshape(x.shape)
-        rows = {}
-        for key, logits in (("with_memory", model(x)), ("views_alone", alone)):
-            scores = jaccard((torch.sigmoid(logits) >= thr).numpy(), y.bool().numpy()).mean(0)
-            rows[key] = np.round(scores, 4).tolist()
-        out[condition] = rows
-    return {"checkpoint": str(path), "threshold": thr, "per_view_jaccard": out}
-
-
-def select_threshold(paths: list[Path]) -> float:
-    """Choose one decision threshold for every model: the one with the best validation Jaccard
-    averaged over models and conditions (read from each checkpoint's stored sweep), and write it
-    into every checkpoint (its ``threshold`` entry, which :func:`load_model` applies)."""
-    sweeps = [read_checkpoint(p)["val"] for p in paths]
-    keys = sorted(set.intersection(*(set(s) for s in sweeps)))
-    score = {k: float(np.mean([s[k]["mean"] for s in sweeps])) for k in keys}
-    best = max(keys, key=lambda k: score[k])
-    for p in paths:
-        payload = read_checkpoint(p)
-        payload["threshold"] = float(best)
-        tmp = p.with_name(p.name + ".tmp")
-        torch.save(payload, tmp)
-        tmp.replace(p)
-    print(json.dumps({"threshold": float(best), "mean_val_jaccard": score}), flush=True)
-    return float(best)
-
-
-def model_card(paths: list[Path]) -> str:
-    """The model card (Markdown) of shipped checkpoints, from what each checkpoint recorded."""
-    rows, cond_rows = [], []
-    conditions = list(CONDITIONS)
-    threshold = None
-    for p in paths:
-        ck = read_checkpoint(p)
-        model = load_checkpoint(p)
-        threshold = ck.get("threshold", 0.5)
-        key = f"{float(threshold):.2f}"
-        val = ck["val"].get(key, ck["val"]["0.50"])
-        rows.append(
-            f"| {p.stem} | {ck['config']['kind']} | {ck['views']} | {model.n_params():,} | "
-            f"{ck['epoch']} | {ck['step']} | {ck['wall_s'] / 60:.1f} | {ck['device']} | "
-            f"{val['mean']:.3f} | `{ck['command']}` |"
-        )
-        cond_rows.append(f"| {p.stem} | " + " | ".join(
-            f"{val['per_condition'].get(c, float('nan')):.3f}" for c in conditions) + " |")
-    return "\n".join([
-        "| model | kind | train views | params | epochs | steps | wall (min) | device | "
-        f"val Jaccard @ {threshold} | command |",
-        "|---|---|---|---|---|---|---|---|---|---|", *rows, "",
-        f"Validation Jaccard per condition (mean over 12 views, threshold {threshold}):", "",
-        "| model | " + " | ".join(conditions) + " |",
-        "|---|" + "---|" * len(conditions), *cond_rows,
-    ])
 
 
 def _overrides(text: str) -> dict:
@@ -673,30 +418,103 @@ def _overrides(text: str) -> dict:
     return out
 
 
-def _condition_weights(text: str) -> dict[str, float]:
-    """``condition=weight,...``: how much more often a condition's sequences are drawn
-    (a finite weight > 0; the conditions not named weigh 1)."""
-    condition = one_name(CONDITIONS, "conditions")  # the spellings --conditions accepts
-    out: dict[str, float] = {}
-    for item in filter(None, text.split(",")):
-        name, sep, value = item.partition("=")
-        try:
-            name = condition(name) if sep else ""
-        except argparse.ArgumentTypeError:
-            name = ""
-        if not name:
-            raise argparse.ArgumentTypeError(
-                f"expected condition=weight with a condition of {', '.join(CONDITIONS)}, "
-                f"got {item!r}")
-        try:
-            weight = float(value)
-        except ValueError:
-            weight = float("nan")
-        if not (math.isfinite(weight) and weight > 0):
-            raise argparse.ArgumentTypeError(f"{name}: weight must be a finite number > 0, "
-                                             f"got {value!r}")
-        out[name] = weight
-    return out
+def parse_args(argv: list[str]) -> argparse.Namespace:
+    """The training command's options, checked (files named by them are checked by :func:`main`,
+    so a recipe can be checked before its checkpoints exist)."""
+    p = argparse.ArgumentParser(
+        prog="python -m completion.train",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    p.add_argument("--model", type=one_name(tuple(sorted(DEFAULT_CONFIGS)), "models"),
+                   required=True, help=f"one of {', '.join(sorted(DEFAULT_CONFIGS))}")
+    p.add_argument("--conditions", type=parse_conditions, default=list(CONDITIONS))
+    p.add_argument("--views", type=int, default=12, help="views per training window (3, 6, 12)")
+    p.add_argument("--train-dir", type=Path, default=Path("data/train"))
+    p.add_argument("--val-dir", type=Path, default=Path("data/val"))
+    p.add_argument("--train-count", type=int, default=800,
+                   help="sequences per condition to have in --train-dir (generated if missing; "
+                   "0 = use what is there)")
+    p.add_argument("--val-count", type=int, default=24)
+    p.add_argument("--data-seed", type=int, default=1,
+                   help="seed of the training shards (the evaluation draws seed 0)")
+    p.add_argument("--workers", type=int, default=2, help="processes for data generation")
+    p.add_argument("--steps", type=int, default=1000,
+                   help="optimizer steps (the budget; the learning rate decays over it)")
+    p.add_argument("--minutes", type=float, default=0.0,
+                   help="wall-time cap in minutes on top of --steps (0 = none)")
+    p.add_argument("--val-every", type=int, default=250, help="validate every N steps")
+    p.add_argument("--batch-size", type=int, default=2, help="sequences per step")
+    p.add_argument("--lr", type=float, default=2e-3)
+    p.add_argument("--pos-weight", type=float, default=2.0)
+    p.add_argument("--jaccard-weight", type=float, default=0.0, metavar="W",
+                   help="add W × (1 − soft Jaccard per view) to the loss (0: BCE alone)")
+    p.add_argument("--ema", type=float, default=0.0, metavar="DECAY",
+                   help="validate and ship an exponential moving average of the weights with "
+                        "this decay per step, e.g. 0.999 (0: the raw weights)")
+    p.add_argument("--clip", type=float, default=1.0, help="gradient norm clip")
+    p.add_argument("--config", type=_overrides, default={},
+                   help="ModelConfig overrides, e.g. embed_dim=128,channels=8:16:32")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--device", default="auto", help="auto, cpu or cuda")
+    p.add_argument("--threads", type=int, default=2)
+    p.add_argument("--out", type=Path, required=True, help="best checkpoint path")
+    p.add_argument("--run-dir", type=Path, default=None,
+                   help="where last.pt (the state --resume continues) goes; default: --out "
+                   "without its suffix (runs/mvp.pt -> runs/mvp/)")
+    p.add_argument("--resume", action="store_true", help="continue <run-dir>/last.pt")
+    p.add_argument("--init-from", type=Path, default=None,
+                   help="start from a checkpoint: the same model whole, or every tensor another "
+                   "kind shares with it (a Single-View U-Net, a multi-view model's towers)")
+    p.add_argument("--precision", choices=("fp32", "bf16"), default="fp32",
+                   help="bf16 autocast for the convolutions (fp32 master weights)")
+    p.add_argument("--augment", choices=AUGMENTATIONS, default="mirror",
+                   help="random symmetry of each training sequence: mirror (x and/or y), roll "
+                   "(x and y together: keeps the sense of a camera pan) or none")
+    p.add_argument("--no-augment", dest="augment", action="store_const", const="none",
+                   help="same as --augment none")
+    p.add_argument("--blank-local", type=float, default=0.0, metavar="P",
+                   help="multi-view models: hide each training view from the local tower with "
+                   "probability P (the context tower still sees it), so that the memory path "
+                   "learns to carry the shape; 0 = off")
+    p.add_argument("--hide-views", type=float, default=0.0, metavar="P",
+                   help="multi-view models: blank each training view after the first from both "
+                   "towers with probability P (the target stays), so that the memory must carry "
+                   "earlier views' shape into the current view's frame; 0 = off")
+    p.add_argument("--hide-context", type=float, default=0.0, metavar="P",
+                   help="multi-view models: blank each training view after the first from the "
+                   "context tower alone with probability P (the local tower still sees it), so "
+                   "that the memory of earlier views must be merged with the current view; "
+                   "0 = off")
+    p.add_argument("--late-weight", type=float, default=1.0, metavar="W",
+                   help="multi-view models: the last view's loss weighs W times the first's, "
+                   "linear in between (mean 1), so that the gradient favours what the memory adds "
+                   "as views accumulate; 1 = every view alike")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    args = p.parse_args(argv)
+    for name in ("views", "steps", "val_every", "batch_size", "threads"):
+        if getattr(args, name) < 1:
+            p.error(f"--{name.replace('_', '-')} must be ≥ 1, got {getattr(args, name)}")
+    for flag in ("blank_local", "hide_views", "hide_context"):  # view-masking probabilities
+        value, name = getattr(args, flag), "--" + flag.replace("_", "-")
+        if not 0.0 <= value < 1.0:
+            p.error(f"{name} must be in [0, 1), got {value}")
+        if value and args.model == "single_view":
+            p.error(f"{name} needs a multi-view model (single_view has no context tower)")
+    if not (1.0 <= args.late_weight <= 10.0):
+        p.error(f"--late-weight must be in [1, 10], got {args.late_weight}")
+    if args.late_weight != 1 and args.model == "single_view":
+        p.error("--late-weight needs a multi-view model (single_view has no memory)")
+    if not (args.jaccard_weight >= 0 and math.isfinite(args.jaccard_weight)):
+        p.error(f"--jaccard-weight must be a finite number ≥ 0, got {args.jaccard_weight}")
+    if not 0.0 <= args.ema < 1.0:
+        p.error(f"--ema must be in [0, 1), got {args.ema}")
+    try:
+        default_config(args.model, **args.config)
+    except (TypeError, ValueError) as err:
+        p.error(f"--config: {err}")
+    args.command = "python -m completion.train " + shlex.join(argv)
+    return args
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -720,147 +538,11 @@ def main(argv: list[str] | None = None) -> int:
     if argv[:1] == ["model-card"]:
         print(model_card([Path(a) for a in argv[1:]]))
         return 0
-    p = argparse.ArgumentParser(
-        prog="python -m completion.train",
-        description=__doc__,
-        formatter_class=argparse.RawDescriptionHelpFormatter,
-    )
-    p.add_argument("--model", type=one_name(tuple(sorted(DEFAULT_CONFIGS)), "models"),
-                   required=True, help=f"one of {', '.join(sorted(DEFAULT_CONFIGS))}")
-    p.add_argument("--conditions", type=parse_conditions, default=list(CONDITIONS))
-    p.add_argument("--condition-weight", type=_condition_weights, default={},
-                   metavar="NAME=W,...",
-                   help="draw the named conditions' sequences W times as often as the others, "
-                   "e.g. slide_behind=3 (default: every sequence alike)")
-    p.add_argument("--views", type=int, default=12, help="views per training window (3, 6, 12)")
-    p.add_argument("--train-dir", type=Path, default=Path("data/train"))
-    p.add_argument("--val-dir", type=Path, default=Path("data/val"))
-    p.add_argument(
-        "--train-count",
-        type=int,
-        default=800,
-        help="sequences per condition to have in --train-dir (generated if missing; "
-        "0 = use what is there)",
-    )
-    p.add_argument("--val-count", type=int, default=24)
-    p.add_argument("--data-seed", type=int, default=1,
-                   help="seed of the training shards (the evaluation draws seed 0)")
-    p.add_argument("--workers", type=int, default=2, help="processes for data generation")
-    p.add_argument("--steps", type=int, default=1000,
-                   help="optimizer steps (the budget; the learning rate decays over it)")
-    p.add_argument("--minutes", type=float, default=0.0,
-                   help="wall-time cap in minutes on top of --steps (0 = none)")
-    p.add_argument("--val-every", type=int, default=250, help="validate every N steps")
-    p.add_argument("--batch-size", type=int, default=2, help="sequences per step")
-    p.add_argument("--lr", type=float, default=2e-3)
-    p.add_argument("--pos-weight", type=float, default=2.0)
-    p.add_argument("--jaccard-weight", type=float, default=0.0, metavar="W",
-                   help="add W × (1 − soft Jaccard per view) to the loss (0: BCE alone)")
-    p.add_argument("--ema", type=float, default=0.0, metavar="DECAY",
-                   help="validate and ship an exponential moving average of the weights with "
-                        "this decay per step, e.g. 0.999 (0: the raw weights)")
-    p.add_argument("--clip", type=float, default=1.0, help="gradient norm clip")
-    p.add_argument(
-        "--config",
-        type=_overrides,
-        default={},
-        help="ModelConfig overrides, e.g. embed_dim=256,channels=16:32:64",
-    )
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--device", default="auto", help="auto, cpu or cuda")
-    p.add_argument("--threads", type=int, default=2)
-    p.add_argument("--out", type=Path, required=True, help="best checkpoint path")
-    p.add_argument("--run-dir", type=Path, default=None)
-    p.add_argument("--resume", action="store_true", help="continue <run-dir>/last.pt")
-    p.add_argument("--init-from", type=Path, default=None,
-                   help="start a multi-view model from a trained single_view checkpoint")
-    p.add_argument("--precision", choices=("fp32", "bf16"), default="fp32",
-                   help="bf16 autocast for the convolutions (fp32 master weights)")
-    p.add_argument("--augment", choices=AUGMENTATIONS, default="mirror",
-                   help="random symmetry of each training sequence: mirror (x and/or y), roll "
-                   "(x and y together: keeps the sense of a camera pan) or none")
-    p.add_argument("--no-augment", dest="augment", action="store_const", const="none",
-                   help="same as --augment none")
-    p.add_argument("--blank-local", type=float, default=0.0, metavar="P",
-                   help="multi-view models: hide each training view from the local tower with "
-                   "probability P (the context tower still sees it), so that the memory path "
-                   "learns to carry the shape; 0 = off")
-    p.add_argument("--hide-views", type=float, default=0.0, metavar="P",
-                   help="multi-view models: blank each training view after the first from both "
-                   "towers with probability P (the target stays), so that the memory must carry "
-                   "earlier views' shape into the current view's frame; 0 = off")
-    p.add_argument("--hide-context", type=float, default=0.0, metavar="P",
-                   help="multi-view models: blank each training view after the first from the "
-                   "context tower alone with probability P (the local tower still sees it), so "
-                   "that the memory of earlier views must be merged with the current view; "
-                   "0 = off")
-    p.add_argument("--drop-view-path", type=float, default=0.0, metavar="P",
-                   help="--config context=both: train each sequence without the per-view path "
-                   "with probability P, so that the place path must carry the memory; 0 = off")
-    p.add_argument("--place-lr", type=float, default=None, metavar="LR",
-                   help="--config context=both: learning rate of the place path (place_bridge, "
-                   "place_tower), on the same schedule as --lr (default: --lr)")
-    p.add_argument("--late-weight", type=float, default=1.0, metavar="W",
-                   help="multi-view models: the last view's loss weighs W times the first's, "
-                   "linear in between (mean 1), so that the gradient favours what the memory adds "
-                   "as views accumulate; 1 = every view alike")
-    p.add_argument("--focus-model", type=Path, default=None, metavar="CKPT",
-                   help="multi-view models: a single_view checkpoint whose errors on each view "
-                   "weigh the BCE per voxel (1 + --focus-weight × |target − its probability|), so "
-                   "the gradient goes to what the current view alone cannot give")
-    p.add_argument("--focus-weight", type=float, default=2.0, metavar="W",
-                   help="with --focus-model: the most a voxel's BCE weight rises above 1")
-    p.add_argument("--where-weight", type=float, default=0.0, metavar="W",
-                   help="models with a shift memory: add W × the cross-entropy of where each of "
-                   "its heads stands along the image's x axis (to write and to read) against the "
-                   "sliding object's centre in the slide-behind sequences (from each shard's "
-                   "poses), so that it learns to stand at the slider; 0 = off")
-    p.add_argument("--quiet", action="store_true", help="no progress bar")
-    args = p.parse_args(argv)
-    for name in ("views", "steps", "val_every", "batch_size", "threads"):
-        if getattr(args, name) < 1:
-            p.error(f"--{name.replace('_', '-')} must be ≥ 1, got {getattr(args, name)}")
-    for flag in ("blank_local", "hide_views", "hide_context"):  # view-masking probabilities
-        value, name = getattr(args, flag), "--" + flag.replace("_", "-")
-        if not 0.0 <= value < 1.0:
-            p.error(f"{name} must be in [0, 1), got {value}")
-        if value and args.model == "single_view":
-            p.error(f"{name} needs a multi-view model (single_view has no context tower)")
-    if not 0.0 <= args.drop_view_path < 1.0:
-        p.error(f"--drop-view-path must be in [0, 1), got {args.drop_view_path}")
-    if args.drop_view_path and args.config.get("context") != "both":
-        p.error("--drop-view-path needs --config context=both (a place path beside the "
-                "per-view one)")
-    if args.place_lr is not None:
-        if not (args.place_lr > 0 and math.isfinite(args.place_lr)):
-            p.error(f"--place-lr must be a finite number > 0, got {args.place_lr}")
-        if args.config.get("context") != "both":
-            p.error("--place-lr needs --config context=both (a place path to give the rate)")
-    if not (1.0 <= args.late_weight <= 10.0):
-        p.error(f"--late-weight must be in [1, 10], got {args.late_weight}")
-    if args.late_weight != 1 and args.model == "single_view":
-        p.error("--late-weight needs a multi-view model (single_view has no memory)")
-    if args.focus_model:
-        if args.model == "single_view":
-            p.error("--focus-model needs a multi-view model (a Single-View model has no memory "
-                    "to supply what its own view misses)")
-        if not args.focus_model.is_file():
-            p.error(f"--focus-model: no such checkpoint {args.focus_model}")
-    if not (args.focus_weight > 0 and math.isfinite(args.focus_weight)):
-        p.error(f"--focus-weight must be a finite number > 0, got {args.focus_weight}")
-    if not (args.jaccard_weight >= 0 and math.isfinite(args.jaccard_weight)):
-        p.error(f"--jaccard-weight must be a finite number ≥ 0, got {args.jaccard_weight}")
-    if not (args.where_weight >= 0 and math.isfinite(args.where_weight)):
-        p.error(f"--where-weight must be a finite number ≥ 0, got {args.where_weight}")
-    if args.where_weight and not args.config.get("shift_heads"):
-        p.error("--where-weight needs a shift memory (--config shift_heads=1 or more)")
-    if not 0.0 <= args.ema < 1.0:
-        p.error(f"--ema must be in [0, 1), got {args.ema}")
-    if unknown := set(args.condition_weight) - set(args.conditions):
-        p.error(f"--condition-weight names {', '.join(sorted(unknown))}, not among --conditions")
+    args = parse_args(argv)
     if args.init_from and not args.init_from.is_file():
-        p.error(f"--init-from: no such checkpoint {args.init_from}")
-    args.command = "python -m completion.train " + shlex.join(argv)
+        print(f"python -m completion.train: error: --init-from: no such checkpoint "
+              f"{args.init_from}", file=sys.stderr)
+        return 2
     train(args)
     return 0
 

@@ -33,15 +33,9 @@ from service.pipeline import ModelMismatch, Pipeline, TooManyViews
 from service.planning import ClientGone, Planner, PlannerBusy
 from service.routes import health_router, router
 from service.schemas import ViewIn
-from service.sessions import (
-    ConcurrentUpdate,
-    SessionLocks,
-    SessionNotFound,
-    Store,
-    StoreFull,
-    open_store,
-)
+from service.sessions import SessionLocks, open_store
 from service.settings import Settings
+from service.store import ConcurrentUpdate, SessionNotFound, Store, StoreFull
 
 log = logging.getLogger(__name__)
 

@@ -19,7 +19,7 @@ from completion.grid import VoxelGrid
 from completion.mesh import grid_to_mesh
 from completion.stream import Completion, CompletionStream, ViewResult
 from service.inputs import DecodedView, InputError
-from service.sessions import ConcurrentUpdate, SessionRecord, Store
+from service.store import ConcurrentUpdate, SessionRecord, Store
 
 #: How often a view is re-applied when another process changed the session meanwhile.
 UPDATE_ATTEMPTS = 5

@@ -24,12 +24,7 @@ from contextlib import contextmanager
 
 import redis
 
-from service.sessions import (
-    ConcurrentUpdate,
-    SessionNotFound,
-    SessionRecord,
-    Store,
-)
+from service.store import ConcurrentUpdate, SessionNotFound, SessionRecord, Store
 
 log = logging.getLogger(__name__)
 
@@ -64,7 +59,7 @@ LOCK_S = 30.0
 
 
 class RedisSessionStore(Store):
-    """The :class:`~service.sessions.Store` interface on a Redis server (redis-py)."""
+    """The :class:`~service.store.Store` interface on a Redis server (redis-py)."""
 
     def __init__(
         self,

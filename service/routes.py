@@ -33,7 +33,7 @@ from service.schemas import (
     SessionOut,
     ViewOut,
 )
-from service.sessions import SessionNotFound
+from service.store import SessionNotFound
 
 MEDIA_TYPES = {
     "ply": "application/octet-stream",

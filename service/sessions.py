@@ -1,18 +1,12 @@
-"""The session store: one interface, two engines (DESIGN §9).
+"""The SQLite session store (the embedded default), the store the settings name, session locks.
 
-:class:`Store` is what the pipeline uses. :class:`SessionStore` keeps sessions in one SQLite file
-(the embedded default, one row per session); :class:`service.redis_store.RedisSessionStore` keeps
-them in Redis so that several replicas share them (``GRASP_STORE_URL``). :func:`open_store`
-picks one from the settings.
+:class:`SessionStore` implements the :class:`service.store.Store` interface on one SQLite file
+(one row per session); :func:`open_store` picks it, or
+:class:`service.redis_store.RedisSessionStore` for ``GRASP_STORE_URL``, from the settings.
+SQLite runs in WAL mode; a committed view survives a killed process.
 
-A session holds the whole ``CompletionStream`` state (model memory, current grid, latest logits,
-counters: a few hundred kB, constant in the number of views), so a server killed at any moment
-and restarted on the same store continues every stream exactly. SQLite runs in WAL mode; a
-committed view survives a killed process.
-
-Writes are compare-and-swap on the view count, so two writers (threads or processes) can never
-both apply their view on top of the same state; within one process :class:`SessionLocks` queues
-the ``POST /views`` of a session so that none has to retry.
+Writes are compare-and-swap on the view count (see :mod:`service.store`); within one process
+:class:`SessionLocks` queues the ``POST /views`` of a session so that none has to retry.
 """
 
 from __future__ import annotations
@@ -21,11 +15,13 @@ import asyncio
 import logging
 import sqlite3
 import time
-from collections.abc import AsyncIterator, Callable, Iterator
-from contextlib import asynccontextmanager, closing, contextmanager
-from dataclasses import dataclass
+from collections.abc import AsyncIterator, Callable
+from contextlib import asynccontextmanager, closing
 from pathlib import Path
 from typing import TYPE_CHECKING
+
+from service.redis_store import RedisSessionStore
+from service.store import ConcurrentUpdate, SessionNotFound, SessionRecord, Store
 
 if TYPE_CHECKING:
     from service.settings import Settings
@@ -46,112 +42,8 @@ CREATE INDEX IF NOT EXISTS sessions_updated ON sessions (updated);
 """
 
 
-class SessionNotFound(LookupError):
-    """No such session (never made, deleted, or expired)."""
-
-
-class StoreFull(RuntimeError):
-    """The store holds ``max_sessions`` live sessions."""
-
-
-class ConcurrentUpdate(RuntimeError):
-    """Another writer applied a view first; reload and try again."""
-
-
-@dataclass(frozen=True)
-class SessionRecord:
-    id: str
-    model: str  # fingerprint of the model that made the state
-    created: float  # unix seconds
-    updated: float
-    views: int
-    object_seen: bool
-    state: bytes  # CompletionStream.to_bytes()
-
-
 #: SQL condition of an expired session, with the two limits of :meth:`SessionStore._limits`.
 _EXPIRED = "((object_seen = 1 AND updated < ?) OR (object_seen = 0 AND updated < ?))"
-
-
-class Store:
-    """What every session store does; thread-safe. Subclasses implement the storage."""
-
-    clock: Callable[[], float]
-
-    def __init__(self, *, max_sessions: int, ttl_s: float, unseen_ttl_s: float | None) -> None:
-        self.max_sessions = max_sessions
-        self.ttl_s = ttl_s
-        # a session that never saw an object lives this long (it cannot answer anything yet)
-        self.unseen_ttl_s = ttl_s if unseen_ttl_s is None else min(unseen_ttl_s, ttl_s)
-
-    @property
-    def where(self) -> str:
-        """Where the sessions live, for the log."""
-        raise NotImplementedError
-
-    def get(self, session_id: str) -> SessionRecord:
-        """The live session; raises SessionNotFound."""
-        raise NotImplementedError
-
-    def count(self) -> int:
-        """Live sessions."""
-        raise NotImplementedError
-
-    def create(
-        self, session_id: str, *, model: str, state: bytes, views: int, object_seen: bool
-    ) -> SessionRecord:
-        """Insert a new session; raises StoreFull when ``max_sessions`` are live."""
-        raise NotImplementedError
-
-    def update(
-        self, record: SessionRecord, *, state: bytes, views: int, object_seen: bool
-    ) -> SessionRecord:
-        """Replace the state of ``record`` if nobody changed it since it was read.
-
-        Raises ConcurrentUpdate when another writer got there first, SessionNotFound when the
-        session was deleted meanwhile.
-        """
-        raise NotImplementedError
-
-    def delete(self, session_id: str) -> bool:
-        """Delete a session; False when there was none."""
-        raise NotImplementedError
-
-    def purge_expired(self) -> int:
-        """Delete every expired session; returns how many."""
-        raise NotImplementedError
-
-    @contextmanager
-    def exclusive(self, session_id: str) -> Iterator[None]:
-        """Held while one view is applied to the session. The compare-and-swap of
-        :meth:`update` is what guarantees order; a store shared by several processes also
-        queues them here so that none has to retry."""
-        yield
-
-    def close(self) -> None:
-        """Release connections."""
-
-    def ensure_room(self) -> None:
-        """Raise StoreFull when no new session fits (a cheap check before doing any work)."""
-        if self.count() >= self.max_sessions:
-            raise self._full()
-
-    def _full(self) -> StoreFull:
-        return StoreFull(
-            f"the session store is full ({self.max_sessions} sessions): DELETE finished sessions, "
-            f"or retry once idle ones expire ({self.ttl_s:g} s after their last view)"
-        )
-
-    def ttl_of(self, record: SessionRecord) -> float:
-        """Seconds after its last view that ``record`` expires."""
-        return self.ttl_s if record.object_seen else self.unseen_ttl_s
-
-    def not_found_message(self, session_id: str) -> str:
-        return (
-            f"unknown session {session_id!r}: it does not exist, was deleted, or expired after "
-            f"{self.ttl_s:g} s without a view ({self.unseen_ttl_s:g} s while no view had shown "
-            "the object); POST /views without session_id starts a new one"
-        )
 
 
 class SessionStore(Store):
@@ -283,8 +175,6 @@ def open_store(settings: Settings) -> Store:
         unseen_ttl_s=settings.unseen_session_ttl_s,
     )
     if settings.store_url is not None:
-        from service.redis_store import RedisSessionStore
-
         return RedisSessionStore(settings.store_url, **limits)
     return SessionStore(settings.store_path, **limits)
 

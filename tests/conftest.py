@@ -1,4 +1,5 @@
-"""Shared test settings: small thread counts so tests behave on a 2-core machine."""
+"""Shared test settings: small thread counts so tests behave on a 2-core machine; a real Redis;
+the fixtures of the service tests (their helpers are in tests/service_helpers.py)."""
 
 import os
 import shutil
@@ -46,3 +47,35 @@ def redis_url(tmp_path_factory):
     yield f"redis://127.0.0.1:{port}/0"
     process.terminate()
     process.wait(timeout=30)
+
+
+# ----------------------------------------------------------------------------- service fixtures
+# Imported inside each fixture: the grasp tests run without torch.
+
+
+@pytest.fixture(scope="module")
+def tiny_model(tmp_path_factory) -> str:
+    """A tiny untrained MVP checkpoint (path) standing in for the shipped weights."""
+    from service_helpers import save_tiny
+
+    return save_tiny(tmp_path_factory.mktemp("model") / "tiny.pt")
+
+
+@pytest.fixture(scope="module")
+def scene():
+    """A simulated camera_pan scene (12 views) with depth images and masks."""
+    from completion.scenes import make_sequence
+
+    return make_sequence("camera_pan", "test", 0, seed=0, keep_depth=True)
+
+
+@pytest.fixture
+def client(tmp_path, tiny_model):
+    """The app on ``tiny_model`` through FastAPI's TestClient (lifespan run)."""
+    from fastapi.testclient import TestClient
+    from service_helpers import settings
+
+    from service.app import create_app
+
+    with TestClient(create_app(settings(tmp_path, tiny_model))) as c:
+        yield c

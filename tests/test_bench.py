@@ -11,7 +11,8 @@ import pytest
 import torch
 
 from completion.bench import bench_model, main
-from completion.model import ModelConfig, build_model
+from completion.config import ModelConfig
+from completion.model import build_model
 
 torch.set_num_threads(1)
 

@@ -12,8 +12,9 @@ import torch
 import trimesh
 
 from completion.cli import name_list
+from completion.config import ModelConfig
 from completion.grid import GRID_SHAPE
-from completion.model import WEIGHTS_DIR, ModelConfig, build_model, save_checkpoint
+from completion.model import WEIGHTS_DIR, build_model, save_checkpoint
 from completion.scenes import CONDITIONS, SINGLE_OBJECT_CONDITIONS
 from grasp import evaluate as ev
 from grasp.evaluate.aggregate import aggregate
@@ -23,7 +24,7 @@ from hands.barrett import JOINT_NAMES
 ROOT = Path(__file__).resolve().parents[1]
 PRIOR_PATH = str(WEIGHTS_DIR / "prior.npz")
 
-TINY = {"channels": (2, 2, 2), "conv_kernel": 3, "embed_dim": 8, "n_heads": 2, "n_features": 8}
+TINY = {"channels": (2, 2, 2), "embed_dim": 8, "n_heads": 2, "n_features": 8}
 KINDS = {
     "single_view": "single_view",
     "mvp": "mvp",

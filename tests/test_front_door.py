@@ -14,7 +14,7 @@ import httpx
 import numpy as np
 import pytest
 from fastapi.testclient import TestClient
-from test_service import Server, points_view, save_tiny, settings
+from service_helpers import Server, points_view, save_tiny, settings
 
 from service import parsing
 from service.app import create_app

@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 import trimesh
 from PIL import Image
-from test_service import Server
+from service_helpers import Server
 
 from completion.scenes import make_sequence
 from service.client import scene_views

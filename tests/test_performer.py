@@ -200,75 +200,36 @@ def test_bad_arguments_raise_value_error() -> None:
         causal_linear_attention(torch.zeros(2, 4), torch.zeros(3, 4), torch.zeros(2, 5))
 
 
-def test_block_and_local_attention_match_their_definitions_and_their_steps() -> None:
-    """Tokens per place: (i, p) reads every (j, p') with j ≤ i (block), or only the p' within one
-    place of p (local); the parallel forms equal a direct sum and the one-view steps."""
+def test_block_attention_matches_its_definition_and_its_steps() -> None:
+    """Several tokens per view: (i, p) reads every (j, p') with j ≤ i; the parallel form equals a
+    direct sum and the one-view steps, and exact attention never reads a later view."""
     from completion.performer import (
         block_causal_linear_attention,
         block_causal_softmax_attention,
         block_linear_attention_step,
-        local_causal_linear_attention,
-        local_linear_attention_step,
-        place_neighbours,
     )
 
-    side, n, m, f = 3, 4, 5, 2
-    places = side**3
+    tokens, n, m, f = 3, 4, 5, 2
     g = torch.Generator().manual_seed(0)
-    phi_q = torch.rand(2, n, places, m, generator=g) + 0.1
-    phi_k = torch.rand(2, n, places, m, generator=g) + 0.1
-    v = torch.randn(2, n, places, f, generator=g)
-    near = place_neighbours(side, 1)
-    assert near.sum(1).tolist()[13] == 27 and near.sum(1).tolist()[0] == 8  # centre, corner
-    row = place_neighbours(side, (2, 0, 1))  # the whole i row, one place along k
-    assert row.sum(1).tolist()[13] == 3 * 1 * 3 and bool(row[0, 2 * 9 + 1]) and not row[0, 3]
-    for window, mask in ((0, torch.ones(places, places, dtype=torch.bool)), (1, near),
-                         ((2, 0, 1), row)):  # fmt: skip
-        expected = torch.zeros(2, n, places, f)
-        for i in range(n):
-            w = torch.einsum("bpm,bjqm->bpjq", phi_q[:, i], phi_k[:, : i + 1])  # (B, P, j, P')
-            w = w * mask.unsqueeze(1)
-            expected[:, i] = torch.einsum("bpjq,bjqf->bpf", w, v[:, : i + 1]) / w.sum((2, 3))[
-                ..., None
-            ]
-        if window:
-            got = local_causal_linear_attention(phi_q, phi_k, v, side=side, window=window)
-            s, z = torch.zeros(2, places, m, f), torch.zeros(2, places, m)
-        else:
-            got = block_causal_linear_attention(phi_q, phi_k, v)
-            s, z = torch.zeros(2, m, f), torch.zeros(2, m)
-        torch.testing.assert_close(got, expected, atol=1e-5, rtol=1e-5)
-        for i in range(n):
-            if window:
-                out, s, z = local_linear_attention_step(
-                    phi_q[:, i], phi_k[:, i], v[:, i], s, z, side=side, window=window
-                )
-            else:
-                out, s, z = block_linear_attention_step(phi_q[:, i], phi_k[:, i], v[:, i], s, z)
-            torch.testing.assert_close(out, expected[:, i], atol=1e-5, rtol=1e-5)
-    # exact attention with the same mask: a far place of an earlier view is never read
-    q, k, vv = torch.randn(3, 1, n, places, 4, generator=g)
-    out = block_causal_softmax_attention(q, k, vv, near=near)
+    phi_q = torch.rand(2, n, tokens, m, generator=g) + 0.1
+    phi_k = torch.rand(2, n, tokens, m, generator=g) + 0.1
+    v = torch.randn(2, n, tokens, f, generator=g)
+    expected = torch.zeros(2, n, tokens, f)
+    for i in range(n):
+        w = torch.einsum("bpm,bjqm->bpjq", phi_q[:, i], phi_k[:, : i + 1])  # (B, P, j, P')
+        expected[:, i] = torch.einsum("bpjq,bjqf->bpf", w, v[:, : i + 1]) / w.sum((2, 3))[
+            ..., None
+        ]
+    got = block_causal_linear_attention(phi_q, phi_k, v)
+    torch.testing.assert_close(got, expected, atol=1e-5, rtol=1e-5)
+    s, z = torch.zeros(2, m, f), torch.zeros(2, m)
+    for i in range(n):
+        out, s, z = block_linear_attention_step(phi_q[:, i], phi_k[:, i], v[:, i], s, z)
+        torch.testing.assert_close(out, expected[:, i], atol=1e-5, rtol=1e-5)
+    q, k, vv = torch.randn(3, 1, n, tokens, 4, generator=g)
+    out = block_causal_softmax_attention(q, k, vv)
     changed = vv.clone()
-    changed[0, 0, 0] += 1.0  # view 0, corner place 0
-    again = block_causal_softmax_attention(q, k, changed, near=near)
-    assert torch.equal(out[0, :, 26], again[0, :, 26])  # the far corner: untouched
-    assert not torch.equal(out[0, 3, 1], again[0, 3, 1])  # a neighbour, three views later
-
-
-def test_neighbourhood_sum_is_the_sum_over_each_places_neighbours() -> None:
-    """The separable box sum equals the (P, P) neighbour mask times the features, forwards and
-    backwards, for reaches within and past the volume (a reach of 4 at side 3 reads the row)."""
-    from completion.performer import neighbourhood_sum, place_neighbours
-
-    side = 3
-    g = torch.Generator().manual_seed(1)
-    x = torch.randn(2, 4, side**3, 6, generator=g, requires_grad=True)
-    for window in (0, 1, (4, 1, 0), (0, 2, 1)):
-        mask = place_neighbours(side, window).float()
-        got = neighbourhood_sum(x, side, window)
-        torch.testing.assert_close(got, mask @ x, atol=1e-5, rtol=1e-5)
-        (grad,) = torch.autograd.grad(got.square().sum(), x)
-        torch.testing.assert_close(grad, mask.T @ (2 * mask @ x), atol=1e-4, rtol=1e-4)
-    with pytest.raises(ValueError, match="27 places"):
-        neighbourhood_sum(torch.zeros(1, 26, 2), side, 1)
+    changed[0, 2] += 1.0  # view 2
+    again = block_causal_softmax_attention(q, k, changed)
+    assert torch.equal(out[0, :2], again[0, :2])  # earlier views: untouched
+    assert not torch.equal(out[0, 3], again[0, 3])  # a later view reads it

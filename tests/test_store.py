@@ -15,14 +15,15 @@ import httpx
 import numpy as np
 import pytest
 import redis
-from test_service import Server, post_concurrently, post_views, reference
+from service_helpers import Server, post_concurrently, post_views, reference, save_tiny
 
 from completion.model import load_model
 from completion.stream import CompletionStream
 from service.client import scene_views
 from service.redis_store import RedisSessionStore
-from service.sessions import ConcurrentUpdate, SessionNotFound, SessionStore, StoreFull
+from service.sessions import SessionStore
 from service.settings import Settings
+from service.store import ConcurrentUpdate, SessionNotFound, StoreFull
 
 
 @pytest.fixture(params=["sqlite", "redis"])
@@ -153,16 +154,7 @@ def test_store_url_is_checked():
 
 
 @pytest.fixture(scope="module")
-def scene():
-    from completion.scenes import make_sequence
-
-    return make_sequence("camera_pan", "test", 0, seed=0, keep_depth=True)
-
-
-@pytest.fixture(scope="module")
 def replicas(tmp_path_factory, redis_url):
-    from test_service import save_tiny
-
     tmp = tmp_path_factory.mktemp("replicas")
     model = save_tiny(tmp / "tiny.pt")
     unused = tmp / "unused.sqlite"  # must stay empty: the sessions live in Redis

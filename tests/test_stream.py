@@ -4,8 +4,9 @@ import numpy as np
 import pytest
 
 from completion import grid as G
+from completion.config import ModelConfig
 from completion.grid import GRID_SHAPE, VoxelGrid
-from completion.model import ModelConfig, build_model
+from completion.model import build_model
 from completion.stream import CompletionStream, NoObjectError
 
 

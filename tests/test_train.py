@@ -5,14 +5,8 @@ import numpy as np
 import pytest
 
 from completion import data
-from completion.model import (
-    build_model,
-    default_config,
-    load_model,
-    read_checkpoint,
-    save_checkpoint,
-)
-from completion.train import PLACE_PATH_PREFIXES, _overrides, main, param_groups
+from completion.model import load_model, read_checkpoint
+from completion.train import main
 
 TINY = "channels=2:4:8,embed_dim=16,n_heads=2,n_features=8,top_channels=2,token_channels=2"
 
@@ -299,7 +293,7 @@ def test_a_regenerated_shard_is_read_again_not_taken_from_the_packed_cache(shard
 
     import numpy as np
 
-    from completion.train import load_split
+    from completion.validation import load_split
 
     folder = tmp_path / "train"
     shutil.copytree(shards / "train", folder)
@@ -313,162 +307,25 @@ def test_a_regenerated_shard_is_read_again_not_taken_from_the_packed_cache(shard
     np.testing.assert_array_equal(again["packed"][1], first["packed"][1])
 
 
-def test_condition_weight_draws_a_condition_more_often_and_rejects_bad_values(
-        shards, tmp_path, capsys):
+def test_draw_batch_is_uniform_sorted_and_seeded():
     import torch
 
     from completion.train import draw_batch
 
-    gen = torch.Generator().manual_seed(0)
-    uniform = draw_batch(None, 4, 6000, gen)
-    assert abs((uniform >= 2).mean() - 0.5) < 0.03
-    weighted = draw_batch(torch.tensor([1.0, 1.0, 3.0, 3.0]), 4, 6000, gen)
-    assert abs((weighted >= 2).mean() - 0.75) < 0.03  # 6 of the 8 weight units
-    assert list(weighted) == sorted(weighted)
-    args = ["--model", "mvp", "--views", "2", "--train-dir", str(shards / "train"),
-            "--val-dir", str(shards / "val"), "--train-count", "0", "--val-count", "0",
-            "--steps", "2", "--val-every", "2", "--config", TINY,
-            "--condition-weight", "Object Hiding=3", "--out", str(tmp_path / "w.pt"), "--quiet"]
-    assert main(args) == 0  # the tables' spelling, as --conditions takes it
-    assert "--condition-weight 'Object Hiding=3'" in read_checkpoint(tmp_path / "w.pt")["command"]
-    capsys.readouterr()
-    for bad, says in ((["--condition-weight", "hiding=3"], "expected condition=weight"),
-                      (["--condition-weight", "slide_behind=0"], "finite number > 0"),
-                      (["--condition-weight", "slide_behind=x"], "finite number > 0"),
-                      (["--conditions", "camera_pan", "--condition-weight", "slide_behind=2"],
-                       "not among --conditions")):
-        with pytest.raises(SystemExit):
-            main(["--model", "mvp", *bad, "--out", "x.pt"])
-        assert says in capsys.readouterr().err
+    picks = draw_batch(4, 6000, torch.Generator().manual_seed(0))
+    assert abs((picks >= 2).mean() - 0.5) < 0.03 and list(picks) == sorted(picks)
+    again = draw_batch(4, 6000, torch.Generator().manual_seed(0))
+    assert np.array_equal(picks, again)
 
 
-def test_drop_view_path_trains_a_place_path_and_needs_one(shards, tmp_path, capsys):
-    args = ["--model", "mvp", "--views", "2", "--train-dir", str(shards / "train"),
-            "--val-dir", str(shards / "val"), "--train-count", "0", "--val-count", "0",
-            "--steps", "2", "--val-every", "2", "--config", TINY + ",context=both,place_dim=8",
-            "--drop-view-path", "0.5", "--out", str(tmp_path / "w.pt"), "--quiet"]
-    assert main(args) == 0
-    assert read_checkpoint(tmp_path / "w.pt")["config"]["context"] == "both"
-    capsys.readouterr()
-    for bad, says in ((["--drop-view-path", "0.5"], "needs --config context=both"),
-                      (["--drop-view-path", "1", "--config", "context=both"], "in [0, 1)"),
-                      (["--place-lr", "1e-3"], "needs --config context=both"),
-                      (["--place-lr", "0", "--config", "context=both"], "finite number > 0")):
-        with pytest.raises(SystemExit):
-            main(["--model", "mvp", *bad, "--out", "x.pt"])
-        assert says in capsys.readouterr().err
-
-
-def test_place_lr_gives_the_place_path_its_own_rate_and_resumes(shards, tmp_path):
-    model = build_model(default_config("mvp", **_overrides(TINY + ",context=both,place_dim=8")))
-    groups = param_groups(model, 1e-4, 1e-3)
-    place = {id(p) for n, p in model.named_parameters() if n.startswith(PLACE_PATH_PREFIXES)}
-    assert [g["base_lr"] for g in groups] == [1e-4, 1e-3]
-    assert {id(p) for p in groups[1]["params"]} == place and place
-    assert not place & {id(p) for p in groups[0]["params"]}
-    assert len(param_groups(model, 1e-4, None)) == 1
-    args = ["--model", "mvp", "--views", "2", "--train-dir", str(shards / "train"),
-            "--val-dir", str(shards / "val"), "--train-count", "0", "--val-count", "0",
-            "--steps", "2", "--val-every", "1", "--config", TINY + ",context=both,place_dim=8",
-            "--place-lr", "1e-3", "--out", str(tmp_path / "w.pt"), "--quiet",
-            "--run-dir", str(tmp_path / "run")]
-    assert main(args) == 0
-    groups = read_checkpoint(tmp_path / "run" / "last.pt")["optimizer"]["param_groups"]
-    assert [g["base_lr"] for g in groups] == [2e-3, 1e-3]  # --lr's default and --place-lr
-    args[args.index("--steps") + 1] = "3"
-    assert main([*args, "--resume"]) == 0
-
-
-def test_focus_weights_weigh_what_the_single_view_model_misses():
-    """A voxel the focus model gets right weighs 1, one it misses up to 1 + W, a guess between."""
-    import torch
-
-    from completion.train import focus_weights
-
-    target = torch.tensor([1.0, 1.0, 0.0, 0.0, 1.0])
-    logits = torch.tensor([20.0, -20.0, -20.0, 20.0, 0.0])  # right, missed, right, false, unsure
-    w = focus_weights(logits, target, 3.0)
-    assert torch.allclose(w, torch.tensor([1.0, 4.0, 1.0, 4.0, 2.5]), atol=1e-5)
-
-
-def test_focus_model_trains_and_rejects_bad_input(shards, tmp_path, capsys):
-    focus = tmp_path / "sv.pt"
-    save_checkpoint(build_model(default_config("single_view", **_overrides(TINY))), focus)
-    args = ["--model", "mvp", "--views", "3", "--train-dir", str(shards / "train"),
-            "--val-dir", str(shards / "val"), "--train-count", "0", "--val-count", "0",
-            "--steps", "2", "--val-every", "2", "--config", TINY, "--late-weight", "2",
-            "--focus-model", str(focus), "--focus-weight", "3", "--out", str(tmp_path / "f.pt"),
-            "--quiet"]
-    assert main(args) == 0
-    summary = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
-    assert summary["steps"] == 2 and math.isfinite(summary["history"][-1]["loss"])
-    for bad, says in ((["--model", "single_view", "--focus-model", str(focus)], "multi-view"),
-                      (["--model", "mvp", "--focus-model", str(tmp_path / "no.pt")], "no such"),
-                      (["--model", "mvp", "--focus-weight", "0"], "finite number > 0")):
-        with pytest.raises(SystemExit):
-            main([*bad, "--out", "x.pt"])
-        assert says in capsys.readouterr().err
-    mvp_as_focus = [*args[:args.index("--focus-model") + 1], str(tmp_path / "f.pt"),
-                    *args[args.index("--focus-model") + 2:]]
-    with pytest.raises(ValueError, match="expected a single_view checkpoint"):
-        main(mvp_as_focus)
-
-
-def test_where_loss_is_low_at_the_slider_and_leaves_out_frames_without_one():
-    import torch
-
-    from completion.train import where_loss
-
-    n = 20
-    at_slider = torch.full((2, 2, n), 1e-4)
-    at_slider[:, :, 7] = at_slider[:, :, 8] = 0.5  # between cells 7 and 8
-    elsewhere = torch.full((2, 2, n), 1.0 / n)
-    cells = torch.tensor([7.5, float("nan")])
-    assert float(where_loss(at_slider, cells)) == pytest.approx(-math.log(0.5), abs=1e-3)
-    assert float(where_loss(elsewhere, cells)) == pytest.approx(math.log(n), abs=1e-3)
-    none = elsewhere.clone().requires_grad_()
-    loss = where_loss(none, torch.full((2,), float("nan")))
-    loss.backward()  # no slider in the batch: zero, and still part of the graph
-    assert loss.item() == 0.0 and none.grad is not None
-
-
-def test_augment_mirrors_the_slider_cells_with_x():
-    import torch
-
-    from completion.train import augment
-
-    x = torch.zeros(8, 1, 40, 40, 40)
-    x[:, 0, 4, 10, 20] = 1  # voxel i = 4: cell (4 − 0.5) / 2
-    cells = torch.full((8, 1), 1.75)
-    x, _ = augment(x, x.clone(), torch.Generator().manual_seed(1), "mirror", cells)
-    i = x[:, 0].flatten(1).argmax(1) // (40 * 40)
-    assert set(i.tolist()) == {4, 35}  # some sequences flipped in x, some not
-    assert torch.allclose(cells[:, 0], (i.float() - 0.5) / 2)
-
-
-def test_where_weight_trains_a_shift_memory_on_the_sliders_poses(tmp_path, capsys):
-    from completion.headroom import slider_index
-    from completion.train import slider_cells
-
-    root = tmp_path / "shards"
-    for split in ("train", "val"):
-        data.generate(["camera_pan", "slide_behind"], split, 1, seed=0, out=root / split,
-                      views=3, progress=False)
-    cells = slider_cells(root / "train", ["camera_pan", "slide_behind"], "train")
-    assert cells.shape == (2, 3) and np.isnan(cells[0]).all()  # camera pan first: no slider
-    seq = data.load_sequence(next((root / "train").glob("slide_behind_*.npz")))
-    assert cells[1].tolist() == pytest.approx(
-        [(slider_index(seq, v)[0] - 0.5) / 2 for v in range(3)], abs=1e-4)
-    args = ["--model", "mvp", "--views", "3", "--conditions", "camera_pan,slide_behind",
-            "--train-dir", str(root / "train"), "--val-dir", str(root / "val"),
-            "--train-count", "0", "--val-count", "0", "--steps", "2", "--val-every", "2",
-            "--config", TINY + ",shift_heads=1,shift_channels=2", "--where-weight", "0.1",
-            "--out", str(tmp_path / "w.pt"), "--quiet"]
-    assert main(args) == 0
-    summary = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
-    assert summary["steps"] == 2 and math.isfinite(summary["history"][-1]["loss"])
-    for bad, says in ((["--where-weight", "0.1"], "needs a shift memory"),
-                      (["--where-weight", "-1"], "finite number ≥ 0")):
-        with pytest.raises(SystemExit):
-            main(["--model", "mvp", *bad, "--out", "x.pt"])
-        assert says in capsys.readouterr().err
+def test_the_run_folder_goes_beside_the_checkpoint_never_into_the_working_dir(
+        shards, tmp_path, monkeypatch):
+    cwd = tmp_path / "cwd"
+    cwd.mkdir()
+    monkeypatch.chdir(cwd)
+    out = tmp_path / "elsewhere" / "tiny.pt"
+    assert main(["--model", "single_view", "--views", "2", "--train-dir", str(shards / "train"),
+                 "--val-dir", str(shards / "val"), "--train-count", "0", "--val-count", "0",
+                 "--steps", "1", "--config", TINY, "--out", str(out), "--quiet"]) == 0
+    assert (tmp_path / "elsewhere" / "tiny" / "last.pt").is_file()
+    assert list(cwd.iterdir()) == []

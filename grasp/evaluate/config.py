@@ -158,6 +158,15 @@ PRESETS: dict[str, Preset] = {
 }
 
 
+#: Rows shown in grasps.png (the first ones present): the paper's model, a baseline, the reference.
+GRASP_FIGURE_ROWS: tuple[str, ...] = ("mvp", "single_view", FUSION)
+
+
+def figure_rows(rows: list[str]) -> list[str]:
+    """The rows whose grasps the figure draws (:data:`GRASP_FIGURE_ROWS`, or the first row)."""
+    return [n for n in GRASP_FIGURE_ROWS if n in rows] or rows[:1]
+
+
 def checkpoints_needed(rows) -> list[str]:
     """The models whose checkpoints these rows run: the model rows, and MVP for its memory-off
     row."""

@@ -12,10 +12,10 @@ from completion.grid import VoxelGrid
 from completion.scenes import Sequence
 from grasp.evaluate.config import (
     CONDITION_LABELS,
-    FUSION,
     PAPER_ORDER,
     REFERENCE_ROWS,
     ROW_LABELS,
+    figure_rows,
 )
 from grasp.evaluate.runner import SequenceResult, truth_mesh_in_latest_camera
 
@@ -117,14 +117,8 @@ def write_figures(results: dict, raw: list[SequenceResult], out: Path) -> list[P
     return written
 
 
-#: Rows shown in grasps.png (the first ones present): the paper's model, a baseline, the reference.
-GRASP_FIGURE_ROWS: tuple[str, ...] = ("mvp", "single_view", FUSION)
 #: Examples shown in grasps.png (main table first: camera pan, hiding, reveal).
 GRASP_FIGURE_EXAMPLES = 3
-
-
-def figure_rows(rows: list[str]) -> list[str]:
-    return [n for n in GRASP_FIGURE_ROWS if n in rows] or rows[:1]
 
 
 def _grasp_result(summary: dict):

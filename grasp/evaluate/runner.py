@@ -32,6 +32,7 @@ from grasp.evaluate.config import (
     Job,
     Settings,
     checkpoints_needed,
+    figure_rows,
 )
 
 STAGES: tuple[str, ...] = (
@@ -267,7 +268,6 @@ class Evaluator:
         clock.charge("grasping")
         example = None
         if job.example:
-            from grasp.evaluate.figures import figure_rows
 
             example = {
                 "input": np.packbits(seq.inputs[-1]),

@@ -1,0 +1,80 @@
+"""The layout DESIGN.md §2 asks for: imports point one way, no two modules import each other
+(not even through an import inside a function), and every file reads in one sitting."""
+
+from __future__ import annotations
+
+import ast
+import graphlib
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+PACKAGES = ("completion", "grasp", "service", "hands")
+MAX_LINES = 600
+
+
+def _modules() -> dict[str, Path]:
+    out = {}
+    for package in PACKAGES:
+        for path in sorted((REPO / package).rglob("*.py")):
+            parts = path.relative_to(REPO).with_suffix("").parts
+            name = ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
+            out[name] = path
+    return out
+
+
+def _imports(path: Path, name: str, known: set[str]) -> set[str]:
+    """The project modules ``path`` imports anywhere in its body (top level, in functions,
+    under TYPE_CHECKING), resolved to the deepest known module."""
+    package = name if path.name == "__init__.py" else name.rpartition(".")[0]
+    found = set()
+    for node in ast.walk(ast.parse(path.read_text())):
+        targets: list[str] = []
+        if isinstance(node, ast.Import):
+            targets = [a.name for a in node.names]
+        elif isinstance(node, ast.ImportFrom):
+            base = node.module or ""
+            if node.level:
+                base = ".".join(package.split(".")[: len(package.split(".")) - node.level + 1]
+                                + ([base] if base else []))
+            targets = [f"{base}.{a.name}" for a in node.names] + [base]
+        for target in targets:
+            while target and target not in known:
+                target = target.rpartition(".")[0]
+            if target and target != name:
+                found.add(target)
+    return found
+
+
+def _graph() -> dict[str, set[str]]:
+    modules = _modules()
+    known = set(modules)
+    # a package's __init__ importing its own submodules is not a dependency of those submodules
+    return {name: {t for t in _imports(path, name, known) if not name.startswith(t + ".")}
+            for name, path in modules.items()}
+
+
+def test_no_two_modules_import_each_other() -> None:
+    graph = _graph()
+    sorter = graphlib.TopologicalSorter(graph)
+    try:
+        sorter.prepare()
+    except graphlib.CycleError as err:  # pragma: no cover - the failure message
+        raise AssertionError(f"import cycle: {' -> '.join(err.args[1])}") from None
+
+
+def test_imports_point_one_way() -> None:
+    for name, targets in _graph().items():
+        top = name.split(".")[0]
+        for target in targets:
+            assert not target.startswith("service") or top == "service", (name, target)
+            if top == "completion":
+                assert target.split(".")[0] == "completion", (name, target)
+            if top == "hands":
+                assert target.split(".")[0] == "hands", (name, target)
+
+
+def test_every_source_and_test_file_reads_in_one_sitting() -> None:
+    files = [p for package in (*PACKAGES, "tests") for p in (REPO / package).rglob("*.py")]
+    long = {str(p.relative_to(REPO)): n for p in files
+            if (n := len(p.read_text().splitlines())) > MAX_LINES}
+    assert not long, f"files over {MAX_LINES} lines: {long}"
