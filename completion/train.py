@@ -536,7 +536,12 @@ def main(argv: list[str] | None = None) -> int:
         print(json.dumps(per_view(Path(argv[1]), Path(argv[2] if len(argv) == 3 else "data/val"))))
         return 0
     if argv[:1] == ["model-card"]:
-        print(model_card([Path(a) for a in argv[1:]]))
+        paths = [Path(a) for a in argv[1:]]
+        if not paths or not all(p.is_file() for p in paths):
+            print("usage: python -m completion.train model-card CKPT [CKPT …] (checkpoint files)",
+                  file=sys.stderr)
+            return 2
+        print(model_card(paths))
         return 0
     args = parse_args(argv)
     if args.init_from and not args.init_from.is_file():

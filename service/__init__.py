@@ -17,5 +17,7 @@ sessions in ``./grasp_store.sqlite``; every setting is a ``GRASP_*`` environment
 Modules: ``app`` (factory, lifespan, errors) · ``routes`` · ``schemas`` (request and response
 bodies) · ``settings`` · ``deps`` (route dependencies) · ``inputs`` (decoding and checking views) ·
 ``pipeline`` (stream step, completion, mesh) · ``planning`` (grasp planning in worker processes) ·
-``sessions`` (SQLite store) · ``client`` (encoding views) · ``load`` (load generator).
+``store`` (the session store interface) · ``sessions`` (SQLite store) · ``redis_store`` (Redis
+store, for replicas) · ``inspector`` (the 3-D page) · ``client`` (encoding views) · ``load`` (load
+generator).
 """

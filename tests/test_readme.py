@@ -1,4 +1,5 @@
-"""Every Python snippet in the README runs as written (the service one against a real server)."""
+"""Every Python snippet in the README and in docs/ runs as written (the service ones against a real
+server), and every relative link in them points at a file that exists."""
 
 from __future__ import annotations
 
@@ -14,12 +15,38 @@ import httpx
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
-SNIPPETS = re.findall(r"```python\n(.*?)```", (ROOT / "README.md").read_text(), re.S)
+PAGES = [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md")),
+         ROOT / "completion" / "weights" / "README.md", ROOT / "hands" / "barrett" / "README.md"]
+SNIPPETS = [(page, code) for page in PAGES
+            for code in re.findall(r"```python\n(.*?)```", page.read_text(), re.S)]
 SERVICE_URL = "http://127.0.0.1:8000"
+LINK = re.compile(r"\[[^\]]*\]\(([^)\s]+)\)")
 
 
 def test_the_readme_has_python_snippets():
-    assert len(SNIPPETS) >= 3
+    readme = [code for page, code in SNIPPETS if page.name == "README.md" and page.parent == ROOT]
+    assert len(readme) >= 2 and len(SNIPPETS) >= 4
+
+
+def test_the_readme_reads_in_five_minutes():
+    lines = (ROOT / "README.md").read_text().splitlines()
+    assert len(lines) <= 250
+    for page in PAGES:
+        if page.name == "results.md":
+            continue  # written by python -m grasp.evaluate: its tables do not wrap
+        long = [i + 1 for i, line in enumerate(page.read_text().splitlines()) if len(line) > 120]
+        assert not long, f"{page.relative_to(ROOT)}: lines over 120 characters: {long}"
+    assert len((ROOT / "completion" / "weights" / "README.md").read_text().splitlines()) <= 250
+
+
+@pytest.mark.parametrize("page", PAGES, ids=[str(p.relative_to(ROOT)) for p in PAGES])
+def test_every_relative_link_points_at_a_file(page):
+    text = re.sub(r"```.*?```", "", page.read_text(), flags=re.S)  # links, not code
+    for target in LINK.findall(text):
+        if re.match(r"[a-z]+:", target) or target.startswith("#"):
+            continue  # a web address or an anchor in the same page
+        path = (page.parent / target.split("#")[0]).resolve()
+        assert path.exists(), f"{page.relative_to(ROOT)} links to {target}, which is missing"
 
 
 @pytest.fixture(scope="module")
@@ -49,9 +76,32 @@ def server(tmp_path_factory):
         proc.wait(timeout=30)
 
 
-@pytest.mark.parametrize("index", range(len(SNIPPETS)))
-def test_readme_snippet_runs(index, request, capsys):
-    code = SNIPPETS[index]
+@pytest.mark.parametrize("index", range(len(SNIPPETS)),
+                         ids=[f"{p.relative_to(ROOT)}-{i}" for i, (p, _) in enumerate(SNIPPETS)])
+def test_snippet_runs(index, request, capsys, tmp_path, monkeypatch):
+    page, code = SNIPPETS[index]
     if SERVICE_URL in code:
         request.getfixturevalue("server")
-    exec(compile(code, f"README.md snippet {index}", "exec"), {"__name__": "__readme__"})
+    monkeypatch.chdir(tmp_path)  # whatever a snippet writes lands outside the checkout
+    exec(compile(code, f"{page.relative_to(ROOT)} snippet {index}", "exec"),
+         {"__name__": "__readme__"})
+
+
+def test_ci_runs_the_readmes_test_command():
+    readme = (ROOT / "README.md").read_text()
+    command = re.findall(r"```bash\n(.*?)```", readme, re.S)[1].strip()  # the quick start's second
+    assert command.endswith("pytest -q") and "\n" not in command
+    install_and_test = command.split("&& ", 2)[2].replace("pip install -e", "pip install -q -e")
+    assert install_and_test in (ROOT / ".ci" / "run").read_text()
+
+
+def test_the_readme_layout_names_every_module():
+    readme = (ROOT / "README.md").read_text()
+    layout = readme[readme.index("## Layout"):]
+    for package in ("completion", "grasp", "service", "hands"):
+        for path in (ROOT / package).rglob("*.py"):
+            if path.stem in ("__init__", "__main__"):
+                continue
+            named = path.name if path.parent.name in ("completion", "grasp", "service") \
+                or path.parent.parent.name == "hands" else path.stem
+            assert f"`{named}" in layout, f"README's layout does not name {path.relative_to(ROOT)}"

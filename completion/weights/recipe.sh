@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # The chain of commands behind the six shipped models (model card: README.md beside this file).
-# Run from the repository root: bash completion/weights/recipe.sh (about 17 hours on 2 CPU cores;
+# Run from the repository root: bash completion/weights/recipe.sh (about 13 hours on 2 CPU cores;
 # DRY_RUN=1 prints the commands instead of running them). Every budget is a number of optimizer
 # steps, so each command repeats its run. Where the history differs from a script, a comment says
 # how (two runs were stopped by hand; slide behind was regenerated before the last stage).
