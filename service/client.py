@@ -1,6 +1,7 @@
-"""Client side of ``POST /views``: encode depth images, masks and grids the way the API expects.
+"""Encoding views the way ``POST /views`` expects them: depth images, masks, grids, intrinsics.
 
-Used by :mod:`service.load`, the tests, and anyone scripting the service from Python::
+Used by :class:`service.grasp_client.GraspClient` (what a robot program should use), by
+:mod:`service.load` and the tests, which build request bodies by hand::
 
     seq = make_sequence("camera_pan", "test", 0, keep_depth=True)
     for body in scene_views(seq):

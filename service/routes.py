@@ -16,6 +16,7 @@ import numpy as np
 from fastapi import APIRouter, Depends, Path, Query, Request, Response, status
 
 from completion.mesh import MeshFormat, export_mesh
+from grasp.autograsp import pregrasp_pose
 from grasp.planner import SupportPlane, hand_primitives, palm_touches, too_large
 from hands.barrett import JOINT_NAMES
 from service.deps import Services, ServicesDep, require_token
@@ -292,9 +293,13 @@ def _grasps_out(
 
 def _grasp_out(result, camera_to_world: np.ndarray | None) -> GraspOut:
     palm = np.asarray(result.palm_pose, dtype=np.float64)
+    before = pregrasp_pose(palm)
+    world = None if camera_to_world is None else np.asarray(camera_to_world, dtype=np.float64)
     return GraspOut(
         palm_pose=palm.tolist(),
-        palm_pose_world=None if camera_to_world is None else (camera_to_world @ palm).tolist(),
+        palm_pose_world=None if world is None else (world @ palm).tolist(),
+        pregrasp_pose=before.tolist(),
+        pregrasp_pose_world=None if world is None else (world @ before).tolist(),
         joints_deg=dict(zip(JOINT_NAMES, map(float, result.joints_deg), strict=True)),
         dofs_deg=[float(d) for d in result.dofs_deg],
         epsilon=float(result.epsilon),

@@ -118,6 +118,13 @@ class GraspOut(BaseModel):
     palm_pose_world: list[list[float]] | None = Field(
         description="4×4 palm→world, when the latest view came with a camera_pose"
     )
+    pregrasp_pose: list[list[float]] = Field(
+        description="4×4 palm→camera the robot moves to first: the palm backed off 0.2 m along "
+        "its approach axis (−z), hand open at the grasp's spread; then approach and close"
+    )
+    pregrasp_pose_world: list[list[float]] | None = Field(
+        description="the pre-grasp pose palm→world, when the latest view came with a camera_pose"
+    )
     joints_deg: dict[str, float] = Field(
         description="the 8 joints by name (f1_spread, f1_prox, f1_dist, f2_spread, f2_prox, "
         "f2_dist, f3_prox, f3_dist), degrees"

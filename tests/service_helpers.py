@@ -108,6 +108,14 @@ def check_grasp(g: dict) -> None:
     pose = np.asarray(g["palm_pose"])
     np.testing.assert_allclose(pose[:3, :3] @ pose[:3, :3].T, np.eye(3), atol=1e-6)
     np.testing.assert_allclose(pose[3], [0, 0, 0, 1])
+    before = np.asarray(g["pregrasp_pose"])  # the same orientation, 0.2 m back along −z
+    np.testing.assert_allclose(before[:3, :3], pose[:3, :3], atol=1e-12)
+    np.testing.assert_allclose(before[:3, 3], pose[:3, 3] - 0.2 * pose[:3, 2], atol=1e-9)
+    if g["palm_pose_world"] is not None:
+        world = np.asarray(g["palm_pose_world"]) @ np.linalg.inv(pose)  # camera→world
+        np.testing.assert_allclose(g["pregrasp_pose_world"], world @ before, atol=1e-9)
+    else:
+        assert g["pregrasp_pose_world"] is None
     assert g["epsilon"] > 0 and g["volume"] > 0
     assert g["contacts"] and all(len(c["point"]) == 3 for c in g["contacts"])
 
@@ -176,9 +184,10 @@ class Server:
                 self.kill()
 
 
-def post_views(url: str, bodies: list[dict], session_id: str | None = None) -> tuple[str, list]:
+def post_views(url: str, bodies: list[dict], session_id: str | None = None, *,
+               headers: dict | None = None) -> tuple[str, list]:
     indices = []
-    with httpx.Client(base_url=url, timeout=120) as client:
+    with httpx.Client(base_url=url, timeout=120, headers=headers) as client:
         for body in bodies:
             payload = body if session_id is None else body | {"session_id": session_id}
             r = client.post("/views", json=payload)

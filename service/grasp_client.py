@@ -1,0 +1,366 @@
+"""A Python client of the grasp service, for robot programs.
+
+::
+
+    from service.grasp_client import GraspClient
+
+    with GraspClient("http://127.0.0.1:8000") as client, client.session() as session:
+        session.add_view(depth, K, mask=mask, camera_pose=camera_to_world)  # numpy arrays
+        best = session.grasps()[0]
+        robot.move(best.pregrasp_pose_world); robot.approach(best.palm_pose_world)
+
+Depth is metres (float32/float64) or millimetres (uint16), as ROS's ``32FC1`` and ``16UC1``
+images carry it; ``K`` is a 3×3 camera matrix or (fx, fy, cx, cy). Everything is checked before
+a request is sent. Service errors become exceptions that carry the service's message
+(:class:`InvalidRequest` is a ``ValueError`` naming the field, :class:`SessionGone`,
+:class:`NothingSeen`, :class:`Unauthorized`); a 503 (the service busy or full) and a refused
+connection are retried with backoff, honouring ``Retry-After``, a bounded number of times.
+Frames: ``*_pose`` is palm→camera of the latest view, ``*_pose_world`` palm→world when the views
+came with ``camera_pose`` (DESIGN §3, §7).
+"""
+
+from __future__ import annotations
+
+import io
+import math
+import time
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import httpx
+import numpy as np
+
+from hands.barrett import JOINT_NAMES
+from service.client import b64, depth_f32_m, grid_field, mask_png, png_bytes
+
+#: ROS ``sensor_msgs/Image`` encodings of depth, and what they hold.
+DEPTH_ENCODINGS = {"16UC1": "mm", "mono16": "mm", "32FC1": "m", "mm": "mm", "m": "m"}
+#: The status worth another try: the service refused the request for now (planner queue full,
+#: session cap) and applied nothing, so even a view can be sent again.
+RETRY_STATUS = 503
+
+
+class ServiceError(RuntimeError):
+    """The service answered with an error; ``status`` and ``detail`` are its own."""
+
+    def __init__(self, status: int, detail: Any) -> None:
+        self.status, self.detail = status, detail
+        super().__init__(f"{status}: {_message(detail)}")
+
+
+class InvalidRequest(ServiceError, ValueError):
+    """422/400/413: the service refused the input; ``field`` names it (e.g. ``n_candidates``)."""
+
+    @property
+    def field(self) -> str | None:
+        if isinstance(self.detail, list) and self.detail and isinstance(self.detail[0], dict):
+            loc = [str(p) for p in self.detail[0].get("loc", ()) if p not in ("body", "query")]
+            return ".".join(loc) or None
+        return None
+
+
+class SessionGone(ServiceError, LookupError):
+    """404: the session expired, was deleted, or never existed."""
+
+
+class NothingSeen(ServiceError):
+    """409: no view of the session has shown the object yet, so there is nothing to grasp."""
+
+
+class Unauthorized(ServiceError, PermissionError):
+    """401: the service wants ``token`` (``GRASP_TOKEN``) and got none or another."""
+
+
+_ERRORS = {400: InvalidRequest, 413: InvalidRequest, 422: InvalidRequest, 404: SessionGone,
+           409: NothingSeen, 401: Unauthorized}
+
+
+def _message(detail: Any) -> str:
+    if isinstance(detail, list):
+        return "; ".join(
+            f"{'.'.join(str(p) for p in d.get('loc', ()))}: {d.get('msg', d)}"
+            if isinstance(d, dict) else str(d) for d in detail)
+    return str(detail)
+
+
+@dataclass(frozen=True)
+class Contact:
+    link: str
+    point: np.ndarray  # (3,) camera frame, metres
+    normal: np.ndarray  # (3,) unit, camera frame
+
+
+@dataclass(frozen=True)
+class Grasp:
+    """One planned grasp. Poses are 4×4 float64; ``joints`` by name in degrees, ``joint_array``
+    the same 8 in the documented order (:data:`JOINT_NAMES`)."""
+
+    palm_pose: np.ndarray
+    palm_pose_world: np.ndarray | None
+    pregrasp_pose: np.ndarray
+    pregrasp_pose_world: np.ndarray | None
+    joints: dict[str, float]
+    dofs_deg: np.ndarray  # spread, f1, f2, f3
+    epsilon: float
+    force_epsilon: float
+    volume: float
+    palm_contact: bool
+    contacts: tuple[Contact, ...]
+
+    @property
+    def joint_array(self) -> np.ndarray:
+        return np.array([self.joints[name] for name in JOINT_NAMES], dtype=np.float64)
+
+    @classmethod
+    def from_json(cls, g: Mapping[str, Any]) -> Grasp:
+        def pose(key: str) -> np.ndarray | None:
+            return None if g.get(key) is None else np.asarray(g[key], dtype=np.float64)
+
+        return cls(
+            palm_pose=pose("palm_pose"), palm_pose_world=pose("palm_pose_world"),
+            pregrasp_pose=pose("pregrasp_pose"), pregrasp_pose_world=pose("pregrasp_pose_world"),
+            joints={name: float(g["joints_deg"][name]) for name in JOINT_NAMES},
+            dofs_deg=np.asarray(g["dofs_deg"], dtype=np.float64),
+            epsilon=float(g["epsilon"]), force_epsilon=float(g["force_epsilon"]),
+            volume=float(g["volume"]), palm_contact=bool(g["palm_contact"]),
+            contacts=tuple(Contact(c["link"], np.asarray(c["point"]), np.asarray(c["normal"]))
+                           for c in g["contacts"]),
+        )
+
+
+class GraspClient:
+    """The service at ``url``. ``retries``: further tries after a 503 or a refused connection,
+    waiting ``Retry-After`` (or 0.5 s, doubling) but at most ``max_wait`` seconds each time.
+    As a context manager it deletes, on exit, every session it opened that is still open."""
+
+    def __init__(self, url: str = "http://127.0.0.1:8000", token: str | None = None, *,
+                 timeout: float = 120.0, retries: int = 5, max_wait: float = 30.0,
+                 transport: httpx.BaseTransport | None = None) -> None:
+        if retries < 0 or not max_wait > 0:
+            raise ValueError(f"retries must be >= 0 and max_wait > 0, got {retries}, {max_wait}")
+        self.url = url.rstrip("/")
+        self.token = token
+        self.retries, self.max_wait = retries, max_wait
+        headers = {"Authorization": f"Bearer {token}"} if token else {}
+        self._http = httpx.Client(base_url=self.url, headers=headers, timeout=timeout,
+                                  transport=transport)
+        self._open: list[Session] = []
+
+    def session(self, support_plane: Sequence[float] | None = None) -> Session:
+        """A new session (created on the service by its first view). ``support_plane``: the
+        table the object rests on, (nx, ny, nz, d) in the world frame (n·x + d = 0, n up); it
+        needs views with ``camera_pose`` and is sent with every grasp request."""
+        session = Session(self, _plane(support_plane))
+        self._open.append(session)
+        return session
+
+    def health(self) -> dict:
+        return self.request("GET", "/healthz").json()
+
+    def request(self, method: str, path: str, **kwargs: Any) -> httpx.Response:
+        """One call, retried on 503 and refused connections; errors raised as
+        :class:`ServiceError` subclasses."""
+        wait = 0.5
+        for attempt in range(self.retries + 1):
+            last = attempt == self.retries
+            try:
+                response = self._http.request(method, path, **kwargs)
+            except (httpx.ConnectError, httpx.ConnectTimeout):  # nothing was sent: safe to retry
+                if last:
+                    raise
+                time.sleep(min(wait, self.max_wait))
+                wait *= 2
+                continue
+            if response.status_code == RETRY_STATUS and not last:
+                time.sleep(min(_retry_after(response) or wait, self.max_wait))
+                wait *= 2
+                continue
+            if response.status_code >= 400:
+                try:
+                    detail = response.json().get("detail", response.text)
+                except ValueError:
+                    detail = response.text
+                raise _ERRORS.get(response.status_code, ServiceError)(response.status_code, detail)
+            return response
+        raise AssertionError("unreachable")  # pragma: no cover
+
+    def close(self) -> None:
+        """Delete the sessions still open, then close the connection pool."""
+        for session in list(self._open):
+            try:
+                session.delete()
+            except (ServiceError, httpx.TransportError):
+                pass  # gone already, or the service is: nothing left to clean
+        self._http.close()
+
+    def __enter__(self) -> GraspClient:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+class Session:
+    """One object's views and grasps; use :meth:`GraspClient.session`. As a context manager it
+    deletes itself on exit."""
+
+    def __init__(self, client: GraspClient, support_plane: str | None) -> None:
+        self.client = client
+        self.support_plane = support_plane
+        self.id: str | None = None
+        self.last_reason: str | None = None  # why the last grasps() found none
+
+    @property
+    def inspector_url(self) -> str:
+        """The 3-D page of this session (with the token in the fragment, never sent to a log)."""
+        self._need_id()
+        query = f"?support_plane={self.support_plane}" if self.support_plane else ""
+        token = f"#token={self.client.token}" if self.client.token else ""
+        return f"{self.client.url}/sessions/{self.id}/view{query}{token}"
+
+    def add_view(self, depth: np.ndarray, K: Any, *, mask: np.ndarray | None = None,
+                 camera_pose: np.ndarray | None = None, encoding: str | None = None) -> dict:
+        """Send one depth image: (H, W) metres (float) or millimetres (uint16), 0 or NaN = no
+        return; ``encoding`` a ROS name to check it against ("32FC1", "16UC1", "mono16").
+        ``mask`` (H, W), non-zero = object. ``camera_pose`` 4×4 camera→world. Returns the
+        service's answer (``view_index``, ``observed_voxels``, ``occupied_voxels``)."""
+        body = {"depth": _depth_field(depth, encoding), "intrinsics": _intrinsics(K)}
+        if mask is not None:
+            mask = np.asarray(mask)
+            if mask.shape != np.shape(depth):
+                raise ValueError(f"mask must have the depth image's shape {np.shape(depth)}, "
+                                 f"got {mask.shape}")
+            body["mask"] = mask_png(mask)
+        return self._post(body, camera_pose)
+
+    def add_points(self, points: np.ndarray, *, camera_pose: np.ndarray | None = None) -> dict:
+        """Send the object's observed points, (N, 3) metres in the camera frame."""
+        p = np.asarray(points, dtype=np.float64)
+        if p.ndim != 2 or p.shape[1] != 3 or not np.isfinite(p).all():
+            raise ValueError(f"points must be a finite (N, 3) array, got shape {p.shape}")
+        return self._post({"points": p.tolist()}, camera_pose)
+
+    def add_grid(self, grid, *, camera_pose: np.ndarray | None = None) -> dict:
+        """Send a ready 40³ :class:`completion.grid.VoxelGrid` (occupancy and grid→camera)."""
+        return self._post({"grid": grid_field(grid)}, camera_pose)
+
+    def grasps(self, top_k: int = 1, *, n_candidates: int | None = None) -> list[Grasp]:
+        """The best ``top_k`` distinct grasps of the current completion, best first; an empty
+        list when no candidate held (``last_reason`` says why)."""
+        self._need_id()
+        params: dict[str, Any] = {"session_id": self.id, "top_k": int(top_k)}
+        if n_candidates is not None:
+            params["n_candidates"] = int(n_candidates)
+        if self.support_plane:
+            params["support_plane"] = self.support_plane
+        out = self.client.request("GET", "/grasp", params=params).json()
+        self.last_reason = out.get("reason")
+        return [Grasp.from_json(g) for g in out["grasps"]]
+
+    def mesh(self):
+        """The completion as a ``trimesh.Trimesh`` in the latest view's camera frame (metres)."""
+        import trimesh
+
+        self._need_id()
+        data = self.client.request("GET", f"/sessions/{self.id}/mesh",
+                                   params={"format": "ply"}).content
+        return trimesh.load(io.BytesIO(data), file_type="ply", force="mesh")
+
+    def info(self) -> dict:
+        """``GET /sessions/{id}``: views, whether the object was seen, expiry."""
+        self._need_id()
+        return self.client.request("GET", f"/sessions/{self.id}").json()
+
+    def delete(self) -> None:
+        if self.id is not None:
+            try:
+                self.client.request("DELETE", f"/sessions/{self.id}")
+            except SessionGone:
+                pass
+        if self in self.client._open:
+            self.client._open.remove(self)
+        self.id = None
+
+    def _post(self, body: dict, camera_pose: np.ndarray | None) -> dict:
+        if camera_pose is not None:
+            pose = np.asarray(camera_pose, dtype=np.float64)
+            if pose.shape != (4, 4) or not np.isfinite(pose).all():
+                raise ValueError(f"camera_pose must be a finite 4×4 array, got shape {pose.shape}")
+            body["camera_pose"] = pose.tolist()
+        if self.id is not None:
+            body["session_id"] = self.id
+        out = self.client.request("POST", "/views", json=body).json()
+        self.id = out["session_id"]
+        return out
+
+    def _need_id(self) -> None:
+        if self.id is None:
+            raise RuntimeError("the session has no view yet: add_view or add_points first")
+
+    def __enter__(self) -> Session:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.delete()
+
+
+def _depth_field(depth: np.ndarray, encoding: str | None) -> dict:
+    d = np.asarray(depth)
+    if d.ndim != 2 or min(d.shape) < 1:
+        raise ValueError(f"depth must be an (H, W) image, got shape {d.shape}")
+    unit = "mm" if d.dtype == np.uint16 else "m" if d.dtype.kind == "f" else None
+    if unit is None:
+        raise ValueError(f"depth must be float metres or uint16 millimetres, got {d.dtype}")
+    if encoding is not None:
+        if encoding not in DEPTH_ENCODINGS:
+            raise ValueError(f"encoding must be one of {sorted(DEPTH_ENCODINGS)}, got {encoding!r}")
+        if DEPTH_ENCODINGS[encoding] != unit:
+            raise ValueError(f"encoding {encoding!r} holds {DEPTH_ENCODINGS[encoding]} but the "
+                             f"depth array is {d.dtype} ({unit})")
+    if unit == "mm":  # the camera's own millimetres, losslessly
+        h, w = d.shape
+        return {"encoding": "png16_mm", "width": w, "height": h, "data": b64(png_bytes(d))}
+    return depth_f32_m(d)
+
+
+def _intrinsics(K: Any) -> dict:
+    """fx, fy, cx, cy from a 3×3 camera matrix, four numbers, or a mapping with those keys."""
+    if isinstance(K, Mapping):
+        values = [K.get(k) for k in ("fx", "fy", "cx", "cy")]
+    else:
+        k = np.asarray(K, dtype=np.float64)
+        if k.shape == (3, 3):
+            if not np.allclose(k[2], [0, 0, 1]) or k[0, 1] != 0 or k[1, 0] != 0:
+                raise ValueError("K must be a pinhole camera matrix [[fx, 0, cx], [0, fy, cy], "
+                                 f"[0, 0, 1]], got {k.tolist()}")
+            values = [k[0, 0], k[1, 1], k[0, 2], k[1, 2]]
+        elif k.shape == (4,):
+            values = list(k)
+        else:
+            raise ValueError(f"K must be 3×3 or (fx, fy, cx, cy), got shape {k.shape}")
+    if any(v is None for v in values):
+        raise ValueError("K needs fx, fy, cx and cy")
+    fx, fy, cx, cy = (float(v) for v in values)
+    if not all(math.isfinite(v) for v in (fx, fy, cx, cy)) or fx <= 0 or fy <= 0:
+        raise ValueError(f"K needs finite fx, fy > 0 and finite cx, cy; got {fx}, {fy}, {cx}, {cy}")
+    return {"fx": fx, "fy": fy, "cx": cx, "cy": cy}
+
+
+def _plane(plane: Sequence[float] | None) -> str | None:
+    if plane is None:
+        return None
+    p = np.asarray(plane, dtype=np.float64)
+    if p.shape != (4,) or not np.isfinite(p).all() or not np.linalg.norm(p[:3]) > 0:
+        raise ValueError(f"support_plane must be four finite numbers (nx, ny, nz, d) with a "
+                         f"non-zero normal, got {plane!r}")
+    return ",".join(repr(float(v)) for v in p)
+
+
+def _retry_after(response: httpx.Response) -> float | None:
+    """Seconds from a ``Retry-After`` header given in seconds (dates are ignored)."""
+    try:
+        seconds = float(response.headers.get("retry-after", ""))
+    except ValueError:
+        return None
+    return seconds if math.isfinite(seconds) and seconds >= 0 else None

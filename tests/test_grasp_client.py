@@ -1,0 +1,195 @@
+"""service.grasp_client: the same grasps as raw HTTP against a real ``python -m service``, inputs
+checked before anything is sent, errors as exceptions with the service's message, retries."""
+
+from __future__ import annotations
+
+import base64
+
+import httpx
+import numpy as np
+import pytest
+from service_helpers import Server, free_port, post_views
+
+from completion.grid import VoxelGrid
+from hands.barrett import JOINT_NAMES
+from service import grasp_client
+from service.client import scene_views
+from service.grasp_client import (
+    Grasp,
+    GraspClient,
+    InvalidRequest,
+    NothingSeen,
+    Unauthorized,
+)
+
+
+@pytest.fixture(scope="module")
+def server(tmp_path_factory, tiny_model):
+    tmp = tmp_path_factory.mktemp("client")
+    s = Server(tmp, tiny_model, tmp / "store.sqlite", token="secret")
+    yield s
+    s.stop()
+
+
+def _mm(depth_m: np.ndarray) -> np.ndarray:
+    return np.round(np.nan_to_num(depth_m) * 1000).astype(np.uint16)
+
+
+@pytest.mark.slow
+def test_a_scene_through_the_client_gives_the_grasp_of_the_raw_calls(server, scene):
+    headers = {"Authorization": "Bearer secret"}
+    sid, _ = post_views(server.url, scene_views(scene), headers=headers)
+    raw = httpx.get(f"{server.url}/grasp", params={"session_id": sid, "top_k": 2},
+                    headers=headers, timeout=300).json()
+    assert raw["grasps"], raw["reason"]
+    K = np.array([[scene.meta["intrinsics"]["fx"], 0, scene.meta["intrinsics"]["cx"]],
+                  [0, scene.meta["intrinsics"]["fy"], scene.meta["intrinsics"]["cy"]],
+                  [0, 0, 1]])  # as a ROS CameraInfo's K
+    with GraspClient(server.url, token="secret") as client:
+        session = client.session()
+        for t in range(len(scene.depth)):
+            out = session.add_view(_mm(scene.depth[t]), K, mask=scene.mask[t] >= 0,
+                                   camera_pose=scene.camera_to_world[t], encoding="16UC1")
+            assert out["view_index"] == t
+        grasps = session.grasps(top_k=2)
+        assert len(grasps) == len(raw["grasps"])
+        for got, want in zip(grasps, raw["grasps"], strict=True):
+            assert got.joints == want["joints_deg"]
+            assert list(got.joints) == list(JOINT_NAMES)
+            np.testing.assert_array_equal(got.joint_array, [want["joints_deg"][n]
+                                                            for n in JOINT_NAMES])
+            np.testing.assert_array_equal(got.palm_pose, want["palm_pose"])
+            np.testing.assert_array_equal(got.palm_pose_world, want["palm_pose_world"])
+            np.testing.assert_array_equal(got.pregrasp_pose_world, want["pregrasp_pose_world"])
+            assert got.epsilon == want["epsilon"] and len(got.contacts) == len(want["contacts"])
+        mesh = session.mesh()
+        with client.session() as again:  # the same completion's input as a ready grid
+            out = httpx.get(f"{server.url}/sessions/{session.id}/occupancy",
+                            headers=headers).json()
+            grid = VoxelGrid(VoxelGrid.unpack(base64.b64decode(out["data"])),
+                             np.asarray(out["grid_to_camera"]))
+            assert again.add_grid(grid)["observed_voxels"] == int(grid.occupancy.sum())
+        assert len(mesh.faces) > 100 and session.info()["views"] == 12
+        assert session.inspector_url.endswith(f"/sessions/{session.id}/view#token=secret")
+        kept = session.id
+    gone = httpx.get(f"{server.url}/sessions/{kept}", headers=headers)
+    assert gone.status_code == 404  # the client deleted its session on exit
+
+
+def test_millimetres_and_metres_give_the_same_stored_view(server, scene):
+    depth_mm = _mm(scene.depth[0])
+    K = tuple(scene.meta["intrinsics"][k] for k in ("fx", "fy", "cx", "cy"))
+    headers = {"Authorization": "Bearer secret"}
+    stored = []
+    with GraspClient(server.url, token="secret") as client:
+        for depth in (depth_mm, (depth_mm / 1000.0).astype(np.float32)):
+            with client.session() as session:
+                session.add_view(depth, K, mask=scene.mask[0] >= 0)
+                observed = httpx.get(f"{server.url}/sessions/{session.id}/observed",
+                                     headers=headers).json()
+                grid = httpx.get(f"{server.url}/sessions/{session.id}/occupancy",
+                                 headers=headers).json()
+                stored.append((np.asarray(observed["points"]), grid))
+    (points_a, grid_a), (points_b, grid_b) = stored
+    assert len(points_a) > 50
+    np.testing.assert_allclose(points_a, points_b, atol=1e-6)
+    np.testing.assert_allclose(grid_a["grid_to_camera"], grid_b["grid_to_camera"], atol=1e-6)
+    assert grid_a["data"] == grid_b["data"]
+
+
+def test_service_errors_raise_with_its_message(server, scene):
+    with GraspClient(server.url, token="secret") as client, client.session() as session:
+        session.add_view(_mm(scene.depth[0]), scene.meta["intrinsics"],
+                         mask=np.zeros(scene.depth[0].shape, bool))  # nothing of the object
+        with pytest.raises(NothingSeen, match="409"):
+            session.grasps()
+        session.add_view(_mm(scene.depth[0]), scene.meta["intrinsics"], mask=scene.mask[0] >= 0)
+        with pytest.raises(InvalidRequest, match="n_candidates must be at most 8") as err:
+            session.grasps(n_candidates=10_000)
+        assert err.value.field == "n_candidates" and isinstance(err.value, ValueError)
+        session.delete()
+        assert session.id is None
+    with GraspClient(server.url, token="wrong") as client:
+        with pytest.raises(Unauthorized, match="401"):
+            client.session().add_points(np.zeros((3, 3)) + [0, 0, 0.5])
+
+
+def _recording(responses: list[httpx.Response]):
+    """A transport that answers ``responses`` in turn and records every request it saw."""
+    seen: list[httpx.Request] = []
+
+    def handle(request: httpx.Request) -> httpx.Response:
+        seen.append(request)
+        return responses.pop(0)
+
+    return httpx.MockTransport(handle), seen
+
+
+def test_a_503_with_retry_after_is_retried_and_succeeds(monkeypatch):
+    slept: list[float] = []
+    monkeypatch.setattr(grasp_client.time, "sleep", slept.append)
+    transport, seen = _recording([
+        httpx.Response(503, headers={"Retry-After": "1"}, json={"detail": "planner busy"}),
+        httpx.Response(200, json={"session_id": "s1", "view_index": 0, "observed_voxels": 3,
+                                  "occupied_voxels": 9}),
+    ])
+    with GraspClient("http://robot-lab:8000", transport=transport) as client:
+        session = client.session()
+        assert session.add_points([[0, 0, 0.5], [0.01, 0, 0.5], [0, 0.01, 0.5]])["view_index"] == 0
+        assert session.id == "s1" and slept == [1.0] and len(seen) == 2
+        session.id = None  # nothing to delete on the fake service
+
+
+def test_retries_are_bounded(monkeypatch):
+    slept: list[float] = []
+    monkeypatch.setattr(grasp_client.time, "sleep", slept.append)
+    busy = [httpx.Response(503, headers={"Retry-After": "120"}, json={"detail": "store full"})
+            for _ in range(3)]
+    transport, seen = _recording(busy)
+    with GraspClient("http://x", transport=transport, retries=2, max_wait=5) as client:
+        with pytest.raises(grasp_client.ServiceError, match="503: store full"):
+            client.health()
+    assert len(seen) == 3 and slept == [5, 5]  # Retry-After capped by max_wait
+    with GraspClient(f"http://127.0.0.1:{free_port()}", retries=2) as client:
+        with pytest.raises(httpx.ConnectError):  # nothing listens there
+            client.health()
+    assert slept[2:] == [0.5, 1.0]
+
+
+@pytest.mark.parametrize(("call", "says"), [
+    (lambda s: s.add_view(np.ones((4, 5), np.float32), np.eye(3), mask=np.ones((5, 4))),
+     "mask must have the depth image's shape"),
+    (lambda s: s.add_view(np.ones((4, 5), np.float32), np.eye(4)), "K must be 3×3"),
+    (lambda s: s.add_view(np.ones((4, 5), np.float32), [[1, 0, 2], [0, 1, 2], [0, 1, 1]]),
+     "pinhole camera matrix"),
+    (lambda s: s.add_view(np.ones((4, 5), np.float32), (0, 1, 2, 2)), "fx, fy > 0"),
+    (lambda s: s.add_view(np.ones((4, 5), np.float32), (1, 1, 2, 2), encoding="16UC1"),
+     "holds mm"),
+    (lambda s: s.add_view(np.ones((4, 5), np.int32), (1, 1, 2, 2)), "float metres or uint16"),
+    (lambda s: s.add_view(np.ones(5, np.float32), (1, 1, 2, 2)), r"\(H, W\) image"),
+    (lambda s: s.add_view(np.ones((4, 5), np.float32), (1, 1, 2, 2), camera_pose=np.eye(3)),
+     "camera_pose must be a finite 4×4"),
+    (lambda s: s.add_points(np.zeros((3, 2))), r"finite \(N, 3\)"),
+    (lambda s: s.grasps(), "no view yet"),
+])
+def test_bad_input_raises_before_any_request(call, says):
+    transport, seen = _recording([])
+    with GraspClient("http://x", transport=transport) as client:
+        with pytest.raises((ValueError, RuntimeError), match=says):
+            call(client.session())
+    assert seen == []
+    with pytest.raises(ValueError, match="support_plane"):
+        GraspClient("http://x", transport=transport).session(support_plane=(0, 0, 0, 1))
+
+
+def test_grasp_from_json_keeps_the_documented_joint_order():
+    g = {"palm_pose": np.eye(4).tolist(), "palm_pose_world": None, "pregrasp_pose":
+         np.eye(4).tolist(), "pregrasp_pose_world": None,
+         "joints_deg": {name: float(i) for i, name in reversed(list(enumerate(JOINT_NAMES)))},
+         "dofs_deg": [0, 1, 2, 3], "epsilon": 0.1, "force_epsilon": 0.2, "volume": 0.01,
+         "palm_contact": True, "contacts": [{"link": "palm", "point": [0, 0, 0.1],
+                                             "normal": [0, 0, 1]}]}
+    grasp = Grasp.from_json(g)
+    assert list(grasp.joints) == list(JOINT_NAMES)
+    np.testing.assert_array_equal(grasp.joint_array, np.arange(8.0))
+    assert grasp.palm_pose_world is None and grasp.contacts[0].link == "palm"
