@@ -18,7 +18,6 @@ Modules: ``app`` (factory, lifespan, errors) · ``routes`` · ``schemas`` (reque
 bodies) · ``settings`` · ``deps`` (route dependencies) · ``inputs`` (decoding and checking views) ·
 ``pipeline`` (stream step, completion, mesh) · ``planning`` (grasp planning in worker processes) ·
 ``store`` (the session store interface) · ``sessions`` (SQLite store) · ``redis_store`` (Redis
-store, for replicas) · ``inspector`` (the 3-D page) · ``grasp_client`` (the Python client a robot program
-uses) · ``client`` (encoding views) · ``load`` (load
-generator).
+store, for replicas) · ``inspector`` (the 3-D page) · ``grasp_client`` (the Python client a robot
+program uses) · ``client`` (encoding views) · ``load`` (load generator).
 """
