@@ -68,11 +68,14 @@ class SupportPlane:
 
     def __post_init__(self) -> None:
         n = np.asarray(self.normal, dtype=np.float64).reshape(-1)
-        if n.shape != (3,) or not np.isfinite(n).all() or not np.isfinite(self.offset):
-            raise ValueError(f"a support plane needs a finite normal (3,) and offset, got {n}")
+        if n.shape != (3,) or not np.isfinite(n).all():
+            raise ValueError(f"a support plane's normal must be 3 finite numbers, got {n}")
+        if not np.isfinite(self.offset):
+            raise ValueError(f"a support plane's offset d must be finite, got {self.offset}")
         norm = float(np.linalg.norm(n))
-        if norm < 1e-9:
-            raise ValueError("the support plane's normal must not be zero")
+        if not 1e-9 <= norm < np.inf:
+            raise ValueError(f"the support plane's normal must have a length of at least 1e-9 "
+                             f"(and not be zero), got {n.tolist()}")
         object.__setattr__(self, "normal", n / norm)
         object.__setattr__(self, "offset", float(self.offset) / norm)
 

@@ -28,7 +28,7 @@ from completion.stream import NoObjectError
 from service import inspector  # its data routes join `router` on import
 from service.deps import Services, token_problem
 from service.inputs import MAX_COORDINATE_M, InputError
-from service.parsing import BodyParser
+from service.parsing import BODY_EXPECTED, BodyParser
 from service.pipeline import ModelMismatch, Pipeline, TooManyViews
 from service.planning import ClientGone, Planner, PlannerBusy
 from service.routes import health_router, router
@@ -165,6 +165,7 @@ async def _lifespan(app: FastAPI) -> AsyncIterator[None]:
             settings.inference_workers,
             max_image_pixels=settings.max_image_pixels,
             max_points=settings.max_points,
+            at_once=settings.max_parsing,
         ),
     )
     log.info("model %s (weights %s), store %s", settings.model, pipeline.model_id, store.where)
@@ -226,11 +227,6 @@ async def _input_error(request: Request, exc: InputError) -> JSONResponse:
     return JSONResponse({"detail": detail}, status_code=status.HTTP_422_UNPROCESSABLE_CONTENT)
 
 
-#: What a body must be, said when it is not even that.
-BODY_EXPECTED = (
-    "the body must be one JSON object in UTF-8, sent with 'content-type: application/json' "
-    "(see /docs)"
-)
 #: Plain words for the errors that mean "this is not the JSON object expected".
 _BODY_HINTS = {
     "json_invalid": "the body is not valid JSON: " + BODY_EXPECTED,

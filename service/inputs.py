@@ -66,13 +66,37 @@ def decode_view(view: ViewIn, *, max_image_pixels: int, max_points: int) -> Deco
     if view.grid is not None:
         return DecodedView(grid=_grid(view.grid), camera_to_world=pose)
     assert view.depth is not None and view.intrinsics is not None  # ViewIn's own check
-    depth = _depth(view.depth, max_image_pixels)
-    k = view.intrinsics
-    intrinsics = Intrinsics(k.fx, k.fy, k.cx, k.cy, width=depth.shape[1], height=depth.shape[0])
+    depth = _depth(view.depth, max_image_pixels)  # (H, W) uint16 mm or float32 m, as sent
     mask = None if view.mask is None else _mask(view.mask, depth.shape)
+    step = thinning_step(depth, mask, max_points)
+    k = view.intrinsics
+    if step > 1:  # every step-th pixel along both axes: the same camera at a lower resolution
+        depth = depth[::step, ::step].copy()  # copies, so that the full images are freed now
+        mask = None if mask is None else mask[::step, ::step].copy()
+    intrinsics = Intrinsics(k.fx / step, k.fy / step, k.cx / step, k.cy / step,
+                            width=depth.shape[1], height=depth.shape[0])
+    metres = depth.astype(np.float64)
+    if depth.dtype == np.uint16:
+        metres /= 1000.0
     with np.errstate(over="ignore", invalid="ignore"):
-        points = depth_to_points(depth, intrinsics, mask)
+        points = depth_to_points(metres, intrinsics, mask)
     return DecodedView(points=_checked_points(points, from_depth=True), camera_to_world=pose)
+
+
+def thinning_step(depth: np.ndarray, mask: np.ndarray | None, max_points: int) -> int:
+    """The smallest pixel step s ≥ 1 such that every s-th pixel along both axes gives at most
+    ``max_points`` object points (valid depth, inside the mask): how a depth image with more
+    points than a view may hold is thinned (GRASP_MAX_POINTS), before any point is made."""
+    valid = depth > 0 if depth.dtype == np.uint16 else np.isfinite(depth) & (depth > 0)
+    if mask is not None:
+        valid &= mask
+    count = int(np.count_nonzero(valid))
+    if count <= max_points:
+        return 1
+    step = max(2, int(np.ceil(np.sqrt(count / max_points))))
+    while np.count_nonzero(valid[::step, ::step]) > max_points:
+        step += 1
+    return step
 
 
 def _base64(text: str, loc: tuple[str, ...]) -> bytes:
@@ -130,15 +154,19 @@ def _png(raw: bytes, loc: tuple[str, ...], modes: tuple[str, ...], expected: str
 
 
 def _pixels(image, loc: tuple[str, ...]) -> np.ndarray:
+    """The pixels as an array; the image is closed (its buffer freed) either way."""
     from PIL import Image
 
     try:
-        return np.asarray(image)
+        return np.array(image)
     except (OSError, SyntaxError, ValueError, Image.DecompressionBombError) as exc:
         raise InputError(loc, f"{'.'.join(loc[1:])} could not be decoded ({exc})") from exc
+    finally:
+        image.close()
 
 
 def _depth(depth: DepthIn, max_pixels: int) -> np.ndarray:
+    """The depth image as sent: (H, W) uint16 millimetres (png16_mm) or float32 metres (f32_m)."""
     loc = ("body", "depth", "data")
     w, h = depth.width, depth.height
     _image_size_ok(w, h, max_pixels, ("body", "depth"))
@@ -150,7 +178,7 @@ def _depth(depth: DepthIn, max_pixels: int) -> np.ndarray:
                 f"f32_m depth of {w}×{h} needs width × height × 4 = {4 * w * h} bytes, "
                 f"got {len(raw)}",
             )
-        values = np.frombuffer(raw, dtype="<f4").reshape(h, w).astype(np.float64)
+        values = np.frombuffer(raw, dtype="<f4").reshape(h, w).astype(np.float32)
         finite = values[np.isfinite(values)]
         if finite.size and finite.min() < 0:
             raise InputError(
@@ -168,10 +196,10 @@ def _depth(depth: DepthIn, max_pixels: int) -> np.ndarray:
         raise InputError(
             loc, f"depth PNG is {image.size[0]}×{image.size[1]} but width × height say {w}×{h}"
         )
-    millimetres = _pixels(image, loc).astype(np.float64)
+    millimetres = _pixels(image, loc)
     if millimetres.min(initial=0) < 0 or millimetres.max(initial=0) > 65535:
         raise InputError(loc, "depth PNG values must be 0…65535 mm")
-    return millimetres / 1000.0
+    return millimetres.astype(np.uint16, copy=False)
 
 
 def _mask(text: str, shape: tuple[int, int]) -> np.ndarray:

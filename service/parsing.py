@@ -32,6 +32,14 @@ from service.schemas import ViewIn
 
 #: Bodies up to this size are parsed in a thread of the server process.
 IN_PROCESS_BYTES = 512 * 1024
+#: What a body must be, said when it is not even that.
+BODY_EXPECTED = (
+    "the body must be one JSON object in UTF-8, sent with 'content-type: application/json' "
+    "(see /docs)"
+)
+#: What a body nested deeper than the JSON reader's recursion limit (about 1,000 levels) hears.
+TOO_DEEP = ("the body's JSON is nested too deeply (over about 1,000 levels); a view nests 3: "
+            "{\"points\": [[x, y, z], …]}")
 
 
 @dataclass(frozen=True)
@@ -62,14 +70,23 @@ def parse_view(
     body: object = raw
     if _is_json(content_type):
         try:
-            body = json.loads(raw)
+            text = raw.decode("utf-8")  # json.loads would also take UTF-16 and UTF-32 bytes
+        except UnicodeDecodeError as exc:
+            return "error", 400, f"the body is not UTF-8 (byte {exc.start}): {BODY_EXPECTED}"
+        try:
+            body = json.loads(text)
         except json.JSONDecodeError as exc:
             return "error", 422, [{"loc": ["body", exc.pos], "msg": f"JSON decode error: "
                                    f"{exc.msg}", "type": "json_invalid"}]  # fmt: skip
-        except (UnicodeDecodeError, ValueError):
-            return "error", 400, "There was an error parsing the body"
+        except RecursionError:
+            return "error", 400, TOO_DEEP
+        except ValueError:  # an integer of more than 4300 digits, the only other refusal
+            return "error", 400, ("a number in the body has more than 4300 digits (the limit "
+                                  "of this JSON reader); coordinates are ordinary numbers")
     try:
         view = ViewIn.model_validate(body)
+    except RecursionError:
+        return "error", 400, TOO_DEEP
     except ValidationError as exc:
         errors = [{"loc": ["body", *e["loc"]], "msg": e["msg"], "type": e["type"]}
                   for e in exc.errors(include_url=False, include_input=False)]  # fmt: skip
@@ -84,10 +101,14 @@ def parse_view(
 class BodyParser:
     """Parses view bodies: small ones in a thread, big ones in ``workers`` processes."""
 
-    def __init__(self, workers: int, *, max_image_pixels: int, max_points: int) -> None:
+    def __init__(self, workers: int, *, max_image_pixels: int, max_points: int,
+                 at_once: int = 2) -> None:
         self.workers = workers
         self.limits = dict(max_image_pixels=max_image_pixels, max_points=max_points)
         self._pool: ProcessPoolExecutor | None = None
+        # bodies decoded at once, threads and processes together: each may hold a few times
+        # GRASP_MAX_IMAGE_PIXELS of arrays, so their number bounds the server's memory
+        self._at_once = asyncio.Semaphore(at_once)
 
     def _processes(self) -> ProcessPoolExecutor:
         if self._pool is None:  # started on the first big body: most servers never see one
@@ -96,10 +117,11 @@ class BodyParser:
 
     async def parse(self, raw: bytes, content_type: str | None) -> ParsedView:
         job = partial(parse_view, raw, content_type, **self.limits)
-        if len(raw) <= IN_PROCESS_BYTES:
-            answer = await anyio.to_thread.run_sync(job)
-        else:
-            answer = await asyncio.get_running_loop().run_in_executor(self._processes(), job)
+        async with self._at_once:
+            if len(raw) <= IN_PROCESS_BYTES:
+                answer = await anyio.to_thread.run_sync(job)
+            else:
+                answer = await asyncio.get_running_loop().run_in_executor(self._processes(), job)
         if answer[0] == "ok":
             return answer[1]
         _, code, detail = answer

@@ -109,7 +109,9 @@ TopK = Annotated[int, Query(ge=1, le=64, description="grasps returned, best firs
 NCandidates = Annotated[
     int | None, Query(ge=1, description="candidates tried (default GRASP_N_CANDIDATES)")
 ]
-_DECIMAL = r"[-+]?\d{1,9}(\.\d{1,20})?([eE][-+]?\d{1,3})?"
+#: A decimal number that is finite as a float: at most 9 digits before the point, an exponent of
+#: at most two digits (so 1e999, which reads as infinity, does not match).
+_DECIMAL = r"[-+]?\d{1,9}(\.\d{1,20})?([eE][-+]?\d{1,2})?"
 #: Four decimal numbers nx,ny,nz,d; the lookahead asks for a non-zero digit in the normal.
 SUPPORT_PLANE_PATTERN = re.compile(
     rf"^(?=[^,]*[1-9]|[^,]*,[^,]*[1-9]|[^,]*,[^,]*,[^,]*[1-9])"
@@ -167,7 +169,8 @@ async def plan_session(
             raise InputError(
                 ("query", "support_plane"),
                 "support_plane is four numbers nx,ny,nz,d without spaces (like 0,0,1,-0.25 or "
-                f"1e-3; at most 9 digits before the point), the normal not zero; got "
+                f"1e-3; at most 9 digits before the point, exponents of at most two digits), "
+                f"the normal not zero; got "
                 f"{support_plane[:80]!r}",
             )
         try:

@@ -51,7 +51,10 @@ class GridIn(_Strict):
     """A ready voxel grid: 40³ occupancy bits packed in C order (numpy.packbits, 8000 bytes)."""
 
     data: str = Field(description="base64 of the 8000 packed bytes")
-    grid_to_camera: Matrix4 = Field(description="voxel index (i, j, k) → camera-frame metres")
+    grid_to_camera: Matrix4 = Field(
+        description="voxel index (i, j, k) → camera-frame metres: pitch × identity (0.1 mm to "
+        "10 m) plus a translation, last row [0, 0, 0, 1], the grid's centre in front of the camera"
+    )
 
 
 class ViewIn(_Strict):
@@ -71,7 +74,8 @@ class ViewIn(_Strict):
     grid: GridIn | None = None
     camera_pose: Matrix4 | None = Field(
         None,
-        description="camera→world, rigid; while it stays the same from view to view, the grid "
+        description="camera→world, rigid (an orthonormal rotation with determinant +1, last row "
+        "[0, 0, 0, 1], metres); while it stays the same from view to view, the grid "
         "is fitted to every point seen from that pose (a fixed camera watching objects move)",
     )
 

@@ -40,7 +40,16 @@ class Settings(BaseSettings):
     max_image_pixels: int = Field(
         2048 * 2048, ge=1, description="largest depth image (width × height) accepted"
     )
-    max_points: int = Field(500_000, ge=1, description="most points accepted in one view")
+    max_points: int = Field(
+        500_000,
+        ge=1,
+        description="most points in one view: more sent as points get 422; a depth image with "
+        "more object pixels is thinned to every s-th pixel along both axes (a lower resolution "
+        "of the same camera) before any point is made",
+    )
+    max_parsing: int = Field(
+        2, ge=1, description="view bodies decoded at once (more wait): bounds the server's memory"
+    )
     max_views: int = Field(
         1000,
         ge=1,
