@@ -16,12 +16,13 @@ from service.settings import Settings
 
 def main(argv: list[str] | None = None) -> None:
     defaults = Settings()
+    width = max(map(len, Settings.model_fields)) + 2
     parser = argparse.ArgumentParser(
         prog="python -m service",
         description="Serve the grasp-planning HTTP API with uvicorn (OpenAPI docs at /docs).",
         epilog="settings (environment variables):\n"
         + "\n".join(
-            f"  GRASP_{name.upper():<22}{field.description} (default {field.default})"
+            f"  GRASP_{name.upper():<{width}}{field.description} (default {field.default})"
             for name, field in Settings.model_fields.items()
         ),
         formatter_class=argparse.RawDescriptionHelpFormatter,
@@ -39,11 +40,10 @@ def main(argv: list[str] | None = None) -> None:
             "'Authorization: Bearer <token>'",
             file=sys.stderr,
         )
-    import uvicorn
-
     from service.app import create_app
+    from service.connections import serve
 
-    uvicorn.run(create_app(settings), host=settings.host, port=settings.port, log_level="info")
+    serve(create_app(settings), settings)
 
 
 def _is_loopback(host: str) -> bool:

@@ -21,6 +21,7 @@ from fastapi.exceptions import RequestValidationError
 from fastapi.openapi.utils import get_openapi
 from fastapi.responses import JSONResponse
 from starlette.exceptions import HTTPException as StarletteHTTPException
+from starlette.requests import ClientDisconnect
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from completion.mesh import EmptyMeshError
@@ -283,7 +284,11 @@ PUBLIC_PATHS = re.compile(
 
 class TokenGate:
     """401 before the request body is read, when ``GRASP_TOKEN`` is set and the request does
-    not carry it (a tokenless 30 MB upload is refused without reading a byte of it)."""
+    not carry it (a tokenless 30 MB upload is refused without parsing or keeping a byte of it).
+
+    An answer sent before the body was read says ``Connection: close``: the server
+    (:mod:`service.connections`) discards the rest of the body, within bounds, then closes, so a
+    client that reads only after sending (urllib, requests) sees the answer and not a reset."""
 
     def __init__(self, app: ASGIApp, *, token: str | None) -> None:
         self.app = app
@@ -303,13 +308,16 @@ class TokenGate:
         response = JSONResponse(
             {"detail": problem},
             status.HTTP_401_UNAUTHORIZED,
-            headers={"WWW-Authenticate": "Bearer"},
+            headers={"WWW-Authenticate": "Bearer", "Connection": "close"},
         )
         await response(scope, receive, send)
 
 
 class BodyLimit:
-    """413 for request bodies over ``max_bytes``, by Content-Length or while streaming."""
+    """413 for request bodies over ``max_bytes``, by Content-Length or while streaming; with
+    ``Connection: close``, as :class:`TokenGate`'s early answer. A body that stops coming (the
+    client left, or took over ``GRASP_BODY_TIMEOUT_S``) ends the request quietly: there is no
+    one to answer, and it is not the server's error."""
 
     def __init__(self, app: ASGIApp, *, max_bytes: int) -> None:
         self.app = app
@@ -325,19 +333,33 @@ class BodyLimit:
         for name, value in scope["headers"]:
             if name == b"content-length" and value.isdigit() and int(value) > self.max_bytes:
                 response = JSONResponse(
-                    {"detail": self._message()}, status.HTTP_413_CONTENT_TOO_LARGE
+                    {"detail": self._message()},
+                    status.HTTP_413_CONTENT_TOO_LARGE,
+                    headers={"Connection": "close"},
                 )
                 await response(scope, receive, send)
                 return
         received = 0
+        gone = False
 
         async def limited() -> Message:
-            nonlocal received
+            nonlocal received, gone
             message = await receive()
+            gone = message["type"] == "http.disconnect"
             if message["type"] == "http.request":
                 received += len(message.get("body", b""))
                 if received > self.max_bytes:
-                    raise HTTPException(status.HTTP_413_CONTENT_TOO_LARGE, self._message())
+                    raise HTTPException(
+                        status.HTTP_413_CONTENT_TOO_LARGE,
+                        self._message(),
+                        headers={"Connection": "close"},
+                    )
             return message
 
-        await self.app(scope, limited, send)
+        try:
+            await self.app(scope, limited, send)
+        except ClientDisconnect:
+            if not gone:
+                raise
+            log.info("%s %s: the client left before its body was complete",
+                     scope["method"], scope["path"])  # fmt: skip

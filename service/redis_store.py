@@ -8,7 +8,12 @@ Layout, all under one key prefix (``grasp:`` by default):
 - ``<prefix>live``: a sorted set of the session ids scored by their expiry time, for
   ``max_sessions`` and ``/healthz`` (entries past their score are dropped on every count);
 - ``<prefix>lock:<id>``: a redis-py lock held while one replica applies a view to the session,
-  so that views sent to different replicas queue instead of retrying.
+  so that views sent to different replicas queue instead of retrying. It is a short lease
+  (``GRASP_LOCK_LEASE_S``, 5 s), renewed from a background thread while its holder works
+  (:class:`Lease`): a live holder keeps it for as long as its view takes, a replica that dies
+  holding it blocks that session for at most one lease. :meth:`RedisSessionStore.try_lock`
+  never waits; the service polls it from its event loop, so a view waiting for a lock holds no
+  inference slot and delays no other session.
 
 Creation and updates are Lua scripts, atomic on the server: a view is stored only on top of the
 state it was computed from (compare-and-swap on the view count), so each view is applied once
@@ -18,7 +23,9 @@ and in order, whichever replica receives it.
 from __future__ import annotations
 
 import logging
+import threading
 import time
+import weakref
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 
@@ -53,9 +60,73 @@ return 'ok'
 
 _FIELDS = ("model", "created", "updated", "views", "seen", "state")
 
-#: Seconds one replica may hold a session's lock (a view takes well under one); a replica that
-#: dies holding it blocks that session for at most this long.
-LOCK_S = 30.0
+#: Seconds a session's lock lives unless its holder renews it (the default of
+#: ``GRASP_LOCK_LEASE_S``): a replica that dies holding it blocks that session this long at most.
+LEASE_S = 5.0
+#: A view waits for its session's lock at most this many leases (then the answer is 503): one
+#: lease lets a dead holder's lock expire, the second one covers views queued on other replicas.
+WAIT_LEASES = 2.0
+#: Seconds between two tries of a waiting view.
+POLL_S = 0.05
+
+
+class Lease:
+    """This process's hold on a session's lock: a thread renews it every third of the lease
+    until :meth:`release`, so a holder never loses it however long its view takes.
+
+    A lease that is dropped without :meth:`release` (a bug) stops being renewed when it is
+    garbage-collected, and the lock expires one lease later.
+    """
+
+    def __init__(self, lock: redis.lock.Lock, session_id: str, lease_s: float) -> None:
+        self.lock = lock
+        self.session_id = session_id
+        self._stop = threading.Event()
+        self._lost = threading.Event()  # renewal failed: another holder may have the lock
+        self._renewer = threading.Thread(
+            target=_renew,
+            args=(lock, session_id, lease_s / 3, self._stop, self._lost),
+            name=f"lease-{session_id[:16]}",
+            daemon=True,
+        )
+        weakref.finalize(self, self._stop.set)
+        self._renewer.start()
+
+    @property
+    def lost(self) -> bool:
+        """Whether a renewal found the lock gone (Redis restarted, or the renewer stalled for
+        a whole lease); the compare-and-swap still guards the view's write."""
+        return self._lost.is_set()
+
+    def release(self) -> None:
+        """Stop renewing and free the lock (quick; call it once)."""
+        self._stop.set()
+        self._renewer.join()
+        try:
+            self.lock.release()
+        except redis.exceptions.LockError:  # expired or taken over: the CAS still guarded it
+            log.warning("the lock of session %s expired while a view was applied", self.session_id)
+
+
+def _renew(
+    lock: redis.lock.Lock,
+    session_id: str,
+    every_s: float,
+    stop: threading.Event,
+    lost: threading.Event,
+) -> None:
+    """Reset the lock's expiry to a whole lease every ``every_s`` until ``stop`` is set.
+
+    Holds no reference to the :class:`Lease`, so that a dropped lease can be collected."""
+    while not stop.wait(every_s):
+        try:
+            lock.reacquire()
+        except redis.exceptions.LockError:
+            log.warning("the lock of session %s was lost while a view was applied", session_id)
+            lost.set()
+            return
+        except redis.RedisError as exc:  # a blip: try again before the lease runs out
+            log.warning("renewing the lock of session %s failed: %s", session_id, exc)
 
 
 class RedisSessionStore(Store):
@@ -162,24 +233,35 @@ class RedisSessionStore(Store):
         """Redis deletes expired sessions itself; this drops their ids from the live set."""
         return int(self.redis.zremrangebyscore(self._live, "-inf", self.clock()))
 
-    @contextmanager
-    def exclusive(self, session_id: str) -> Iterator[None]:
-        """Hold the session's lock across replicas while one view is applied."""
+    def try_lock(self, session_id: str, *, lease_s: float = LEASE_S) -> Lease | None:
+        """The session's lock if it is free now (None while another holder has it); never
+        waits. Held until :meth:`Lease.release`, renewed meanwhile, for ``lease_s`` seconds
+        after this process dies."""
         lock = self.redis.lock(
-            f"{self.prefix}lock:{session_id}", timeout=LOCK_S, blocking_timeout=LOCK_S
-        )
-        if not lock.acquire():
-            raise ConcurrentUpdate(
-                f"session {session_id!r} stayed locked by another replica for {LOCK_S:g} s; "
-                "send the view again"
-            )
+            f"{self.prefix}lock:{session_id}", timeout=lease_s, thread_local=False
+        )  # not thread-local: taken, renewed and released by different threads
+        if not lock.acquire(blocking=False):
+            return None
+        return Lease(lock, session_id, lease_s)
+
+    @contextmanager
+    def exclusive(self, session_id: str, *, lease_s: float = LEASE_S) -> Iterator[None]:
+        """Hold the session's lock across replicas while one view is applied, waiting for it in
+        this thread (at most ``WAIT_LEASES`` leases, then ConcurrentUpdate). The service does
+        not wait here: it polls :meth:`try_lock` from its event loop."""
+        wait_s = WAIT_LEASES * lease_s
+        deadline = time.monotonic() + wait_s
+        while (lease := self.try_lock(session_id, lease_s=lease_s)) is None:
+            if time.monotonic() >= deadline:
+                raise ConcurrentUpdate(
+                    f"session {session_id!r} stayed locked by another replica for {wait_s:g} s; "
+                    "send the view again"
+                )
+            time.sleep(POLL_S)
         try:
             yield
         finally:
-            try:
-                lock.release()
-            except redis.exceptions.LockError:  # held past LOCK_S: the CAS still guarded it
-                log.warning("the lock of session %s expired while a view was applied", session_id)
+            lease.release()
 
     def close(self) -> None:
         self.redis.close()

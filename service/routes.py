@@ -49,7 +49,8 @@ _WHY = {
     409: "the session cannot answer yet (no object seen, empty completion, other model)",
     413: "request body over GRASP_MAX_BODY_BYTES",
     422: "invalid input; the detail says what was expected",
-    503: "the session store is full, or too many grasp plans are waiting (Retry-After)",
+    503: "the session store is full, too many grasp plans are waiting, or another replica "
+    "held the session's lock for two leases (Retry-After)",
 }
 
 
@@ -92,11 +93,9 @@ async def post_view(
     view, session_id = parsed.view, parsed.session_id
     if session_id is None:
         session_id, result = await services.infer(services.pipeline.add_view, None, view)
-    else:
-        async with services.locks.hold(session_id):
-            session_id, result = await services.infer(
-                services.pipeline.add_view, session_id, view
-            )
+    else:  # the session's lock is awaited here, outside the inference slots; 503 if it stays
+        async with services.exclusive(session_id):
+            session_id, result = await services.infer(services.pipeline.add_view, session_id, view)
     return ViewOut(
         session_id=session_id,
         view_index=result.view_index,

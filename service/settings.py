@@ -37,6 +37,14 @@ class Settings(BaseSettings):
         description="a session whose views never showed the object is deleted this long after "
         "its last view (it cannot answer yet; keeps empty sessions from filling the store)",
     )
+    lock_lease_s: float = Field(
+        5.0,
+        gt=0,
+        le=300,
+        description="with store_url: a replica holds a session's lock for this long, renewed "
+        "while it applies a view; one that dies holding it blocks that session this long at "
+        "most (a view waits up to two leases for the lock, then gets 503 with Retry-After)",
+    )
     max_image_pixels: int = Field(
         2048 * 2048, ge=1, description="largest depth image (width × height) accepted"
     )
@@ -58,6 +66,25 @@ class Settings(BaseSettings):
     )
     max_body_bytes: int = Field(
         32 * 1024 * 1024, ge=1024, description="largest request body; larger ones get 413"
+    )
+    header_timeout_s: float = Field(
+        10.0,
+        gt=0,
+        description="a request's line and headers must arrive within this long of the "
+        "connection opening (or of the previous answer); a slower client gets 408 and is "
+        "disconnected",
+    )
+    body_timeout_s: float = Field(
+        60.0,
+        gt=0,
+        description="a request body must arrive within this long of its headers (a 32 MB body "
+        "needs 0.6 MB/s); a slower client is disconnected",
+    )
+    max_connections_per_client: int = Field(
+        64,
+        ge=1,
+        description="open connections from one client address at most; more get 429 and are "
+        "closed (behind a proxy every client has the proxy's address)",
     )
     token: SecretStr | None = Field(
         None, description="if set, every route but /healthz needs 'Authorization: Bearer <token>'"

@@ -105,3 +105,12 @@ def test_the_readme_layout_names_every_module():
             named = path.name if path.parent.name in ("completion", "grasp", "service") \
                 or path.parent.parent.name == "hands" else path.stem
             assert f"`{named}" in layout, f"README's layout does not name {path.relative_to(ROOT)}"
+
+
+def test_the_service_page_lists_every_setting():
+    from service.settings import Settings
+
+    page = (ROOT / "docs" / "service.md").read_text()
+    missing = [f"GRASP_{name.upper()}" for name in Settings.model_fields
+               if f"GRASP_{name.upper()}" not in page]
+    assert not missing, f"docs/service.md does not list {missing}"

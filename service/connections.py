@@ -1,0 +1,299 @@
+"""Connection-level guards of ``python -m service``: read deadlines, a cap per client address,
+and early answers that every client can read.
+
+uvicorn (h11) has a keep-alive timeout and a global cap (``limit_concurrency``), but no deadline
+for a request's head or body, no cap per address, and it closes a connection right after an
+answer sent before the body was read (a 401 from ``TokenGate``, a 413 from ``BodyLimit``): the
+unread body makes the kernel send RST, and a client that reads only after sending (urllib,
+http.client, requests) gets ConnectionResetError instead of the answer. None of this is a uvicorn
+option, so :class:`GuardedH11Protocol` subclasses its h11 protocol (picked with
+``uvicorn.Config(http=...)``) and adds, per connection:
+
+- a **head deadline**: the request line and headers arrive within ``header_timeout_s`` of the
+  connection opening or of the previous answer, else 408 (when part of a head came) and close;
+- a **body deadline**: the body arrives within ``body_timeout_s`` of its head, else close;
+- a **cap per client address**: a connection beyond ``max_per_client`` open ones from its address
+  gets 429 and is closed; other addresses are served;
+- a **lingering close** after an early answer, as nginx's ``lingering_close`` and Apache's
+  lingering close do: the answer is followed by FIN, then the rest of the body is read and
+  discarded (at most ``max_drain_bytes``, within the body deadline) before the socket closes.
+  On a keep-alive connection uvicorn itself discards the rest and reads the next request; the
+  same bounds apply.
+
+Hand-written because neither uvicorn nor Starlette offers these; a reverse proxy in front does
+(nginx: ``client_header_timeout``, ``client_body_timeout``, ``limit_conn``, ``lingering_close``),
+but ``python -m service`` is also run on its own. It leans on uvicorn's H11Protocol internals
+(``conn``, ``flow``, ``_unset_keepalive_if_required``): uvicorn is pinned in pyproject.toml, and
+tests/test_connections.py fails on the plain protocol.
+
+A connection is in one phase at a time, read off h11's states after every event: ``head``
+(waiting for a request), ``body`` (reading one), ``app`` (the app has the request: no deadline,
+a grasp plan may take long) or ``linger`` (answered; discarding input until the socket closes).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+from collections import Counter
+from collections.abc import Callable
+from dataclasses import dataclass
+from functools import partial
+from typing import Any, Literal
+
+import h11
+from uvicorn.config import Config
+from uvicorn.protocols.http.h11_impl import STATUS_PHRASES, H11Protocol
+from uvicorn.server import ServerState
+
+from service.settings import Settings
+
+#: Seconds a refused connection stays open after its 429, discarding what the client sends, so
+#: a client that sends its request before reading sees the 429 and not a reset.
+REFUSED_LINGER_S = 1.0
+
+Phase = Literal["head", "body", "app", "linger"]
+_ANSWERED = (h11.DONE, h11.MUST_CLOSE, h11.CLOSED)  # h11 states of a server whose answer is out
+
+
+@dataclass(frozen=True)
+class Limits:
+    """What :class:`GuardedH11Protocol` enforces (from the ``GRASP_*`` settings)."""
+
+    header_timeout_s: float
+    body_timeout_s: float
+    max_per_client: int
+    max_drain_bytes: int  # read and discarded after an early answer, at most
+
+    @classmethod
+    def of(cls, settings: Settings) -> Limits:
+        """An over-limit body of up to twice GRASP_MAX_BODY_BYTES still gets a readable 413."""
+        return cls(
+            header_timeout_s=settings.header_timeout_s,
+            body_timeout_s=settings.body_timeout_s,
+            max_per_client=settings.max_connections_per_client,
+            max_drain_bytes=2 * settings.max_body_bytes,
+        )
+
+
+def serve(app: Callable, settings: Settings) -> None:
+    """``uvicorn.run`` on ``settings.host:port``, each connection a :class:`GuardedH11Protocol`."""
+    import uvicorn
+
+    # uvicorn calls Config.http as a factory (config=, server_state=, app_state=, _loop=), so a
+    # partial carries the limits and the count of connections per address that all share.
+    protocol = partial(GuardedH11Protocol, limits=Limits.of(settings), per_client=Counter())
+    uvicorn.run(app, host=settings.host, port=settings.port, log_level="info", http=protocol)
+
+
+class GuardedH11Protocol(H11Protocol):
+    """uvicorn's h11 protocol with the deadlines, cap and lingering close of this module."""
+
+    def __init__(
+        self,
+        config: Config,
+        server_state: ServerState,
+        app_state: dict[str, Any],
+        _loop: asyncio.AbstractEventLoop | None = None,
+        *,
+        limits: Limits,
+        per_client: Counter[str],
+    ) -> None:
+        super().__init__(config, server_state, app_state, _loop)
+        self.limits = limits
+        self.per_client = per_client  # open connections by client host, shared by all
+        self.address: str | None = None
+        self.socket: asyncio.Transport = None  # type: ignore[assignment]  # uvicorn's wraps it
+        self.phase: Phase | None = None
+        self.deadline: asyncio.TimerHandle | None = None
+        self.body_due = 0.0  # loop time by which the body must have arrived
+        self.drain_left = 0  # bytes still to discard after an early answer
+        self.drain_framed = False  # linger until h11 sees the end of the body, not just EOF
+
+    # ------------------------------------------------------------------ asyncio.Protocol
+    def connection_made(self, transport: asyncio.Transport) -> None:  # type: ignore[override]
+        self.socket = transport
+        super().connection_made(_GentleClose(transport, self))  # type: ignore[arg-type]
+        if self.client is not None:
+            self.address = self.client[0]
+            self.per_client[self.address] += 1
+            if self.per_client[self.address] > self.limits.max_per_client:
+                self._refuse()
+                return
+        self._watch()
+
+    def connection_lost(self, exc: Exception | None) -> None:
+        self._disarm()
+        if self.address is not None:
+            self.per_client[self.address] -= 1
+            if self.per_client[self.address] <= 0:
+                del self.per_client[self.address]
+        super().connection_lost(exc)
+
+    def data_received(self, data: bytes) -> None:
+        if self.phase == "linger":
+            self._discard(data)
+            return
+        if self._answered_early() and self._over_drain(len(data)):
+            return  # else uvicorn discards the rest of the body and reads the next request
+        super().data_received(data)
+        self._watch()
+
+    # ------------------------------------------------------------------ uvicorn's hooks
+    def on_response_complete(self) -> None:
+        super().on_response_complete()
+        self.drain_left = self.limits.max_drain_bytes  # if answered early (data_received)
+        self._watch()
+
+    def shutdown(self) -> None:
+        if self.phase == "linger":
+            self.socket.close()
+        else:
+            super().shutdown()
+
+    def close_gently(self) -> None:
+        """uvicorn closes the connection: first drain a body the client is still sending."""
+        if self.phase == "linger" or self.socket.is_closing():
+            self.socket.close()
+        elif self._answered_early():
+            self._linger(until=self.body_due, framed=True)
+        else:
+            self.socket.close()
+
+    def _answered_early(self) -> bool:
+        """The answer is out while the client is still sending the request body."""
+        return self.conn.their_state is h11.SEND_BODY and self.conn.our_state in _ANSWERED
+
+    # ------------------------------------------------------------------ phases
+    def _watch(self) -> None:
+        """Arm the deadline of the phase h11's states now say the connection is in."""
+        if self.phase == "linger" or self.socket.is_closing():
+            return
+        their = self.conn.their_state
+        phase: Phase = "head" if their is h11.IDLE else "body" if their is h11.SEND_BODY else "app"
+        if phase == self.phase:
+            return
+        self.phase = phase
+        now = self.loop.time()
+        if phase == "head":
+            self._arm(now + self.limits.header_timeout_s, self._head_late)
+        elif phase == "body":
+            self.body_due = now + self.limits.body_timeout_s
+            self._arm(self.body_due, self._body_late)
+        else:
+            self._disarm()
+
+    def _head_late(self) -> None:
+        received, _ = self.conn.trailing_data  # the part of a head that came, if any
+        if received:
+            self._log("request head not complete in %g s: 408", self.limits.header_timeout_s)
+            self._answer(
+                408,
+                f"the request line and headers did not arrive within "
+                f"{self.limits.header_timeout_s:g} s (GRASP_HEADER_TIMEOUT_S)",
+            )
+        self.socket.close()
+
+    def _body_late(self) -> None:
+        self._log("request body not complete in %g s: disconnected", self.limits.body_timeout_s)
+        self.socket.close()  # the app's receive() sees http.disconnect
+
+    def _refuse(self) -> None:
+        n = self.limits.max_per_client
+        self._log("over %d connections from this address: 429", n, warn=True)
+        self._answer(
+            429,
+            f"more than {n} open connections from {self.address} "
+            "(GRASP_MAX_CONNECTIONS_PER_CLIENT): close some or reuse them",
+            retry_after="1",
+        )
+        self._linger(until=self.loop.time() + REFUSED_LINGER_S, framed=False)
+
+    # ------------------------------------------------------------------ lingering close
+    def _linger(self, *, until: float, framed: bool) -> None:
+        """After an answer: FIN, then discard input until EOF, the end of the body (when
+        ``framed``), ``max_drain_bytes`` or ``until``, whichever first; then close."""
+        self.phase = "linger"
+        self._unset_keepalive_if_required()
+        self.drain_left = self.limits.max_drain_bytes
+        self.drain_framed = framed
+        self._arm(until, self.socket.close)
+        if self.socket.can_write_eof():
+            self.socket.write_eof()  # the client's next read ends after the answer
+        self.flow.resume_reading()  # uvicorn pauses reading while the app has not read
+
+    def _over_drain(self, n: int) -> bool:
+        """Count ``n`` more bytes discarded after an answer; past the bound, close."""
+        self.drain_left -= n
+        if self.drain_left >= 0:
+            return False
+        self._log("over %d bytes sent after the answer: closed", self.limits.max_drain_bytes)
+        self.socket.close()
+        return True
+
+    def _discard(self, data: bytes) -> None:
+        if self._over_drain(len(data)) or not self.drain_framed:
+            return
+        try:
+            self.conn.receive_data(data)
+            while True:
+                event = self.conn.next_event()
+                if event is h11.NEED_DATA or event is h11.PAUSED:
+                    return
+                if isinstance(event, (h11.EndOfMessage, h11.ConnectionClosed)):
+                    break
+        except h11.RemoteProtocolError:
+            pass
+        self.socket.close()  # the whole body read: nothing unread, so FIN and no reset
+
+    # ------------------------------------------------------------------ helpers
+    def _arm(self, when: float, callback: Callable[[], None]) -> None:
+        self._disarm()
+        self.deadline = self.loop.call_at(when, callback)
+
+    def _disarm(self) -> None:
+        if self.deadline is not None:
+            self.deadline.cancel()
+            self.deadline = None
+
+    def _answer(self, status: int, detail: str, *, retry_after: str | None = None) -> None:
+        """A JSON ``{"detail": ...}`` answer with Connection: close, outside any ASGI cycle."""
+        body = json.dumps({"detail": detail}).encode()
+        headers = [
+            *self.server_state.default_headers,
+            (b"content-type", b"application/json"),
+            (b"content-length", str(len(body)).encode()),
+            (b"connection", b"close"),
+        ]
+        if retry_after is not None:
+            headers.append((b"retry-after", retry_after.encode()))
+        events = [
+            h11.Response(status_code=status, headers=headers, reason=STATUS_PHRASES[status]),
+            h11.Data(data=body),
+            h11.EndOfMessage(),
+        ]
+        self.socket.write(b"".join(self.conn.send(event) or b"" for event in events))
+
+    def _log(self, message: str, *args: object, warn: bool = False) -> None:
+        prefix = f"{self.client[0]}:{self.client[1]} - " if self.client else ""
+        (self.logger.warning if warn else self.logger.info)(prefix + message, *args)
+
+
+class _GentleClose:
+    """The socket's transport as uvicorn sees it, but ``close()`` lets the protocol drain a body
+    the client is still sending first. uvicorn's RequestResponseCycle closes the transport it was
+    given right after an answer with Connection: close, so wrapping the transport is the one
+    place to step in without copying uvicorn's request loop."""
+
+    def __init__(self, transport: asyncio.Transport, protocol: GuardedH11Protocol) -> None:
+        self._transport = transport
+        self._protocol = protocol
+
+    def close(self) -> None:
+        self._protocol.close_gently()
+
+    def is_closing(self) -> bool:
+        return self._protocol.phase == "linger" or self._transport.is_closing()
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self._transport, name)

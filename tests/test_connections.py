@@ -1,0 +1,170 @@
+"""Connections to a real ``python -m service`` (service/connections.py): early answers that every
+client reads, deadlines for a request's head and body, a cap on connections per client address."""
+
+from __future__ import annotations
+
+import http.client
+import importlib.util
+import json
+import socket
+import time
+import urllib.error
+import urllib.request
+
+import httpx
+import pytest
+from service_helpers import Server
+
+MB = 1024 * 1024
+TOKEN = "s3cret"
+HEAD_S, BODY_S, PER_CLIENT = 2.0, 3.0, 4
+JSON = {"content-type": "application/json"}
+AUTH = JSON | {"authorization": f"Bearer {TOKEN}"}
+
+
+@pytest.fixture(scope="module")
+def server(tmp_path_factory, tiny_model):
+    tmp = tmp_path_factory.mktemp("connections")
+    s = Server(tmp, tiny_model, tmp / "store.sqlite", token=TOKEN, max_body_bytes=8 * MB,
+               header_timeout_s=HEAD_S, body_timeout_s=BODY_S,
+               max_connections_per_client=PER_CLIENT, planning_processes="false")  # fmt: skip
+    yield s
+    s.stop()
+
+
+def _urllib(url: str, body: bytes, headers: dict) -> tuple[int, dict]:
+    """urllib sends ``Connection: close`` and the whole body, and only then reads."""
+    request = urllib.request.Request(f"{url}/views", data=body, headers=headers)
+    with pytest.raises(urllib.error.HTTPError) as caught:
+        urllib.request.urlopen(request, timeout=30)
+    return caught.value.code, json.loads(caught.value.read())
+
+
+def _http_client(port: int, body: bytes, headers: dict) -> tuple[int, dict, str | None]:
+    """http.client keeps the connection alive, sends the whole body, then reads."""
+    conn = http.client.HTTPConnection("127.0.0.1", port, timeout=30)
+    try:
+        conn.request("POST", "/views", body=body, headers=headers)
+        r = conn.getresponse()
+        return r.status, json.loads(r.read()), r.getheader("connection")
+    finally:
+        conn.close()
+
+
+def test_an_early_401_reaches_clients_that_send_the_whole_body_first(server):
+    body = b"x" * (8 * MB)  # the server answers after ~64 kB and discards the rest
+    expected = httpx.post(f"{server.url}/views", json={}).json()  # a small body's 401
+    assert "bearer" in expected["detail"].lower()
+    for _ in range(3):  # a reset was the rule, not a race: every try would have failed
+        assert _urllib(server.url, body, JSON) == (401, expected)
+    assert _http_client(server.port, body, JSON) == (401, expected, "close")
+    if importlib.util.find_spec("requests") is not None:  # not a dependency; often there
+        import requests
+
+        r = requests.post(f"{server.url}/views", data=body, headers=JSON, timeout=30)
+        assert (r.status_code, r.json()) == (401, expected)
+    r = httpx.post(f"{server.url}/views", content=body, headers=JSON, timeout=30)
+    assert (r.status_code, r.json()) == (401, expected)
+
+
+def test_an_early_413_reaches_urllib_and_the_drain_is_bounded(server):
+    over = b"x" * (12 * MB)  # over the 8 MB limit, within the 2 x 8 MB drained after the 413
+    status, answer = _urllib(server.url, over, AUTH)
+    assert status == 413 and "GRASP_MAX_BODY_BYTES" in answer["detail"]
+    assert _http_client(server.port, over, AUTH) == (413, answer, "close")
+    huge = urllib.request.Request(f"{server.url}/views", data=b"x" * (40 * MB), headers=AUTH)
+    with pytest.raises(OSError) as caught:  # not read to its end: cut off after 16 MB
+        urllib.request.urlopen(huge, timeout=30)
+    assert not isinstance(caught.value, urllib.error.HTTPError)
+    assert httpx.get(f"{server.url}/healthz").status_code == 200
+
+
+def test_an_early_answer_on_a_keep_alive_connection_skips_the_body_and_goes_on(server):
+    """A 404 sent before the body was read, without Connection: close: the rest of the body is
+    discarded and the next request on the same connection is served."""
+    conn = http.client.HTTPConnection("127.0.0.1", server.port, timeout=30)
+    try:
+        conn.request("POST", "/no-such-route", body=b"x" * (8 * MB), headers=AUTH)
+        r = conn.getresponse()
+        assert (r.status, r.read(), r.getheader("connection")) == (404, b'{"detail":"Not Found"}',
+                                                                    None)  # fmt: skip
+        sock = conn.sock
+        conn.request("GET", "/healthz")
+        assert conn.getresponse().status == 200 and conn.sock is sock
+    finally:
+        conn.close()
+
+
+def _wait_for_answer(sock: socket.socket, trickle: bytes) -> tuple[bytes | None, float]:
+    """Send ``trickle`` a byte a second until the server answers or closes: (what it sent, b""
+    for a close, None for a reset; seconds). Gives up after 10 s."""
+    sock.settimeout(1.0)
+    start = time.monotonic()
+    for byte in trickle[:10]:
+        try:
+            sock.sendall(bytes([byte]))
+            return sock.recv(4096), time.monotonic() - start
+        except TimeoutError:
+            continue
+        except ConnectionError:
+            return None, time.monotonic() - start
+    raise AssertionError(f"still connected after {time.monotonic() - start:.1f} s")
+
+
+def test_a_head_sent_a_byte_a_second_gets_408_at_the_header_timeout(server):
+    with socket.create_connection(("127.0.0.1", server.port)) as sock:
+        reply, seconds = _wait_for_answer(sock, b"GET /healthz HTTP/1.1\r\nhost: x\r\n\r\n")
+    assert HEAD_S - 0.2 < seconds < HEAD_S + 1, seconds
+    head, _, body = reply.partition(b"\r\n\r\n")
+    assert head.startswith(b"HTTP/1.1 408 ") and b"connection: close" in head.lower()
+    assert "GRASP_HEADER_TIMEOUT_S" in json.loads(body)["detail"]
+    with socket.create_connection(("127.0.0.1", server.port)) as sock:  # slow, but in time
+        sock.sendall(b"GET /healthz HTTP/1.1\r\n")
+        time.sleep(HEAD_S / 2)
+        sock.sendall(b"host: x\r\n\r\n")
+        assert sock.recv(4096).startswith(b"HTTP/1.1 200 ")
+
+
+def test_a_body_sent_a_byte_a_second_is_cut_off_at_the_body_timeout(server):
+    head = (f"POST /views HTTP/1.1\r\nhost: x\r\nauthorization: Bearer {TOKEN}\r\n"
+            "content-type: application/json\r\ncontent-length: 1000\r\n\r\n").encode()  # fmt: skip
+    with socket.create_connection(("127.0.0.1", server.port)) as sock:
+        sock.sendall(head)
+        reply, seconds = _wait_for_answer(sock, b" " * 1000)
+    assert reply in (b"", None)  # disconnected, not answered
+    assert BODY_S - 0.2 < seconds < BODY_S + 1, seconds
+    assert httpx.get(f"{server.url}/healthz").status_code == 200
+    log = server.log.read_text()
+    assert "request body not complete in 3 s" in log
+    assert "Exception in ASGI application" not in log  # the app ends the request quietly
+
+
+def _get_healthz(sock: socket.socket) -> bytes:
+    sock.sendall(b"GET /healthz HTTP/1.1\r\nhost: x\r\n\r\n")
+    return sock.recv(4096)
+
+
+def test_connections_over_the_cap_per_address_get_429_and_other_addresses_are_served(server):
+    idle = [socket.create_connection(("127.0.0.1", server.port)) for _ in range(PER_CLIENT)]
+    try:
+        start = time.monotonic()
+        with socket.create_connection(("127.0.0.1", server.port), timeout=HEAD_S) as extra:
+            reply = extra.recv(4096)
+            assert extra.recv(4096) == b""  # and closed
+        assert time.monotonic() - start < 0.5
+        head, _, body = reply.partition(b"\r\n\r\n")
+        assert head.startswith(b"HTTP/1.1 429 ") and b"retry-after: 1" in head.lower()
+        assert "GRASP_MAX_CONNECTIONS_PER_CLIENT" in json.loads(body)["detail"]
+        # 127.0.0.2 is another loopback address: another client, under its own cap
+        with socket.create_connection(("127.0.0.1", server.port),
+                                      source_address=("127.0.0.2", 0)) as other:  # fmt: skip
+            assert _get_healthz(other).startswith(b"HTTP/1.1 200 ")
+        assert _get_healthz(idle[0]).startswith(b"HTTP/1.1 200 ")  # the ones in are served
+        idle.pop().close()  # a place frees up
+        time.sleep(0.2)
+        with socket.create_connection(("127.0.0.1", server.port)) as again:
+            assert _get_healthz(again).startswith(b"HTTP/1.1 200 ")
+        assert time.monotonic() - start < HEAD_S  # before the idle ones time out
+    finally:
+        for sock in idle:
+            sock.close()
