@@ -25,11 +25,11 @@ from fastapi import Depends, HTTPException, Request, status
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 
 from service.parsing import BodyParser
-from service.pipeline import NoLease, Pipeline
+from service.pipeline import Pipeline
 from service.planning import Planner
-from service.redis_store import POLL_S, WAIT_LEASES, Lease
 from service.sessions import SessionLocks
 from service.settings import Settings
+from service.store import POLL_S, WAIT_LEASES
 
 T = TypeVar("T")
 
@@ -68,12 +68,12 @@ class Services:
                 with anyio.CancelScope(shield=True):
                     await self.io(lease.release)
 
-    async def _lock(self, session_id: str, deadline: float) -> Lease | NoLease:
+    async def _lock(self, session_id: str, deadline: float):
         """Poll the session's lock across replicas until this replica holds it."""
         while True:
             with anyio.CancelScope(shield=True):  # a lock taken is never dropped unreleased
                 lease = await self.io(
-                    self.pipeline.try_lock, session_id, lease_s=self.settings.lock_lease_s
+                    self.pipeline.store.try_lock, session_id, lease_s=self.settings.lock_lease_s
                 )
             if lease is not None:
                 return lease

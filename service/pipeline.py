@@ -4,9 +4,9 @@
 ``GET /grasp``: stored state → completion → mesh (marching cubes); :mod:`service.planning` plans.
 
 A view to an existing session is applied while its caller holds the session's lock across
-replicas (:meth:`Pipeline.try_lock`, which never waits: the app waits for it on its event loop,
-not in an inference slot, see :meth:`service.deps.Services.exclusive`); the compare-and-swap on
-the view count is what guarantees each view is applied once and in order.
+replicas (:meth:`service.store.Store.try_lock`, which never waits: the app waits for it on its
+event loop, not in an inference slot, see :meth:`service.deps.Services.exclusive`); the
+compare-and-swap on the view count is what guarantees each view is applied once and in order.
 """
 
 from __future__ import annotations
@@ -24,7 +24,6 @@ from completion.grid import VoxelGrid
 from completion.mesh import grid_to_mesh
 from completion.stream import Completion, CompletionStream, ViewResult
 from service.inputs import DecodedView, InputError
-from service.redis_store import LEASE_S, Lease, RedisSessionStore
 from service.store import ConcurrentUpdate, SessionRecord, Store
 
 #: How often a view is re-applied when another process changed the session meanwhile.
@@ -46,14 +45,6 @@ def model_fingerprint(model: torch.nn.Module) -> str:
         digest.update(name.encode())
         digest.update(tensor.detach().cpu().contiguous().numpy().tobytes())
     return digest.hexdigest()[:16]
-
-
-class NoLease:
-    """What :meth:`Pipeline.try_lock` holds on a store of one process (SQLite): nothing. Views
-    of a session queue in :class:`service.sessions.SessionLocks`; the CAS guards the rest."""
-
-    def release(self) -> None:
-        pass
 
 
 @dataclass(frozen=True)
@@ -87,17 +78,10 @@ class Pipeline:
         self.max_views = max_views if grows else None
 
     # ---------------------------------------------------------------------------- views
-    def try_lock(self, session_id: str, *, lease_s: float = LEASE_S) -> Lease | NoLease | None:
-        """The session's lock across replicas if it is free now, None while another replica
-        holds it; quick, never waits. Release it when the view is applied."""
-        if isinstance(self.store, RedisSessionStore):
-            return self.store.try_lock(session_id, lease_s=lease_s)
-        return NoLease()
-
     def add_view(self, session_id: str | None, view: DecodedView) -> tuple[str, ViewResult]:
         """Apply one view (to a new session when ``session_id`` is None) and store the state.
 
-        For an existing session the caller holds its lock (:meth:`try_lock`); without it a view
+        For an existing session the caller holds its lock (``store.try_lock``); without it a view
         that another replica applied first is applied again on top (up to ``UPDATE_ATTEMPTS``).
         """
         if session_id is None:

@@ -31,7 +31,15 @@ from contextlib import contextmanager
 
 import redis
 
-from service.store import ConcurrentUpdate, SessionNotFound, SessionRecord, Store
+from service.store import (
+    LEASE_S,
+    POLL_S,
+    WAIT_LEASES,
+    ConcurrentUpdate,
+    SessionNotFound,
+    SessionRecord,
+    Store,
+)
 
 log = logging.getLogger(__name__)
 
@@ -59,16 +67,6 @@ return 'ok'
 """
 
 _FIELDS = ("model", "created", "updated", "views", "seen", "state")
-
-#: Seconds a session's lock lives unless its holder renews it (the default of
-#: ``GRASP_LOCK_LEASE_S``): a replica that dies holding it blocks that session this long at most.
-LEASE_S = 5.0
-#: A view waits for its session's lock at most this many leases (then the answer is 503): one
-#: lease lets a dead holder's lock expire, the second one covers views queued on other replicas.
-WAIT_LEASES = 2.0
-#: Seconds between two tries of a waiting view.
-POLL_S = 0.05
-
 
 class Lease:
     """This process's hold on a session's lock: a thread renews it every third of the lease

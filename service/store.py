@@ -32,6 +32,24 @@ class ConcurrentUpdate(RuntimeError):
     """Another writer applied a view first; reload and try again."""
 
 
+#: Seconds a session's lock across replicas lives unless its holder renews it (the default of
+#: ``GRASP_LOCK_LEASE_S``): a replica that dies holding it blocks that session this long at most.
+LEASE_S = 5.0
+#: A view waits for its session's lock at most this many leases (then the answer is 503): one
+#: lease lets a dead holder's lock expire, the second one covers views queued on other replicas.
+WAIT_LEASES = 2.0
+#: Seconds between two tries of a waiting view.
+POLL_S = 0.05
+
+
+class NoLease:
+    """The hold on a session of a store that one process owns (SQLite): nothing to take. Views
+    of a session queue in :class:`service.sessions.SessionLocks`; the CAS guards the rest."""
+
+    def release(self) -> None:
+        pass
+
+
 @dataclass(frozen=True)
 class SessionRecord:
     id: str
@@ -90,6 +108,12 @@ class Store:
     def purge_expired(self) -> int:
         """Delete every expired session; returns how many."""
         raise NotImplementedError
+
+    def try_lock(self, session_id: str, *, lease_s: float = LEASE_S):
+        """The session's lock across processes if it is free now, None while another holds it;
+        never waits. Held until its ``release()``. A store one process owns has nothing to lock
+        (:class:`NoLease`); a shared one overrides this."""
+        return NoLease()
 
     @contextmanager
     def exclusive(self, session_id: str) -> Iterator[None]:

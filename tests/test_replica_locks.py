@@ -19,9 +19,9 @@ import pytest
 import redis
 from service_helpers import Server, points_view, post_views
 
-from service.redis_store import WAIT_LEASES, RedisSessionStore
+from service.redis_store import RedisSessionStore
 from service.settings import Settings
-from service.store import ConcurrentUpdate
+from service.store import WAIT_LEASES, ConcurrentUpdate
 
 LEASE_S = Settings().lock_lease_s  # the default, as a deployment runs it
 INFERENCE_WORKERS = 2  # Server's setting: two locked sessions would fill every slot
