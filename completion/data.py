@@ -102,7 +102,7 @@ _WORKER_RENDERER = None
 def _render(job: tuple) -> Sequence:
     """Worker: render one sequence (one pybullet client per process)."""
     global _WORKER_RENDERER
-    from completion.render import DepthNoise, Renderer
+    from completion.render import Renderer
 
     condition, split, index, seed, _, views, noise, keep_depth = job
     if _WORKER_RENDERER is None:
@@ -114,7 +114,7 @@ def _render(job: tuple) -> Sequence:
         seed,
         views=views,
         renderer=_WORKER_RENDERER,
-        noise=DepthNoise() if noise else None,
+        noise=noise,
         keep_depth=keep_depth,
     )
 
@@ -143,7 +143,7 @@ def generate(
     out: str | Path,
     workers: int = 1,
     views: int = VIEWS,
-    noise: bool = False,
+    noise: bool | None = None,
     keep_depth: bool = False,
     progress: bool = True,
     start: int = 0,
@@ -248,7 +248,9 @@ def main(argv: list[str] | None = None) -> int:
                    help="render on Ray: the cluster at RAY_ADDRESS, else a local runtime "
                    "(pip install -e '.[cluster]')")
     g.add_argument("--views", type=_positive, default=VIEWS)
-    g.add_argument("--noise", action="store_true", help="add the depth-noise model")
+    g.add_argument("--noise", choices=("auto", "on", "off"), default="auto",
+                   help="the sensor model (completion.render.SensorModel): auto = on for "
+                   "tabletop only, on = every condition, off = none")
     g.add_argument("--keep-depth", action="store_true", help="store depth and mask images too")
     s = sub.add_parser("show", help="draw a shard's inputs and targets to a PNG")
     s.add_argument("file", type=Path)
@@ -264,7 +266,7 @@ def main(argv: list[str] | None = None) -> int:
             out=args.out,
             workers=args.workers,
             views=args.views,
-            noise=args.noise,
+            noise={"auto": None, "on": True, "off": False}[args.noise],
             keep_depth=args.keep_depth,
             ray=args.ray,
         )

@@ -249,7 +249,8 @@ def voxelize_mesh(
     # Voxels the surface passes through: the winding number is evaluated at each of their centres.
     shell = voxelize_points(sample_surface(v, f, spacing=pitch / 3.0), t)
     # Every other voxel lies in a 6-connected region that no surface crosses, so inside/outside is
-    # constant over it: a majority vote of a few centres per region decides the region.
+    # constant over it: a vote of 16 centres decides a region; where they disagree, the samples
+    # left a gap in the shell (inside met outside) and each voxel of the region is decided alone.
     labels, n_regions = ndimage.label(~shell)
     queries = [np.argwhere(shell)]
     rng = np.random.default_rng(0)
@@ -266,10 +267,20 @@ def voxelize_mesh(
     inside[tuple(queries[0][w[:n_shell]].T)] = True
     offset = n_shell
     region_inside = np.zeros(n_regions + 1, dtype=bool)
+    mixed = []
     for region, count in region_samples:
-        region_inside[region] = w[offset : offset + count].mean() > 0.5
+        votes = w[offset : offset + count]
+        region_inside[region] = votes.mean() > 0.5
+        if votes.any() and not votes.all():
+            mixed.append(region)
         offset += count
     inside |= region_inside[labels]
+    if mixed:  # the surface samples left a gap: inside and outside met, decide voxel by voxel
+        members = np.argwhere(np.isin(labels, mixed))
+        inside[tuple(members.T)] = (
+            np.abs(igl.fast_winding_number(v, f, indices_to_points(members, t)))
+            > WINDING_THRESHOLD
+        )
     return inside | (shell & ~ndimage.binary_dilation(inside))
 
 

@@ -23,10 +23,20 @@ every point seen from it) and voxelizes the observed points (input) and the comp
   of the sequence (the paper: "partially or fully occluded for several views"). The camera
   stands still, so every view's grid frames all the points seen so far and the hidden object
   stays in grid and target.
+- tabletop (the product's own condition, not the paper's): one object resting on a table (the
+  plane z = 0 of the world, ``meta["support_plane"]`` = n·x + d = 0 as [nx, ny, nz, d]) in one
+  of its stable poses (:func:`stable_pose`), the camera 0.4–1.0 m from it at 20–90° of elevation
+  (overhead included) and one of three motions (``meta["camera_motion"]``): ``still``, ``pan``
+  (30° of azimuth a view, as camera_pan) or ``arc`` (a wrist camera closing in: 40–90° of azimuth
+  over the sequence, the elevation moving by up to 20°, the distance shrinking by up to 30 %).
+  The table is rendered (it occludes, and the sensor's edges form against it) but the mask
+  excludes it, as a segmentation would: the input is the object's points, the target the object
+  alone. The sensor model (:class:`completion.render.SensorModel`) is on by default.
 """
 
 from __future__ import annotations
 
+import functools
 import warnings
 import zlib
 from dataclasses import dataclass, field
@@ -36,7 +46,7 @@ import trimesh
 
 from completion import grid
 from completion.objects import SPLITS, load_object, object_ids
-from completion.render import DepthNoise, Renderer, look_at
+from completion.render import Renderer, SensorModel, look_at
 
 CONDITIONS: tuple[str, ...] = (
     "camera_pan",
@@ -44,9 +54,24 @@ CONDITIONS: tuple[str, ...] = (
     "object_hiding",
     "object_reveal",
     "slide_behind",
+    "tabletop",
 )
+#: The paper's five conditions (Tables I–III keep its protocol).
+PAPER_CONDITIONS: tuple[str, ...] = CONDITIONS[:5]
 #: Conditions with a single object (the ones the grasp joint error applies to).
-SINGLE_OBJECT_CONDITIONS: tuple[str, ...] = ("camera_pan", "object_hiding", "object_reveal")
+SINGLE_OBJECT_CONDITIONS: tuple[str, ...] = (
+    "camera_pan",
+    "object_hiding",
+    "object_reveal",
+    "tabletop",
+)
+#: Conditions whose sensor model is on unless a caller says otherwise.
+NOISY_BY_DEFAULT: tuple[str, ...] = ("tabletop",)
+CAMERA_MOTIONS: tuple[str, ...] = ("still", "pan", "arc")
+#: The table of the tabletop condition: its top is the world plane z = 0.
+TABLE_PLANE = (0.0, 0.0, 1.0, 0.0)
+TABLE_SIZE_M = (1.2, 1.2, 0.03)
+DEFAULT_SENSOR = SensorModel()
 VIEWS = 12
 PAIR_CUBE_M = 0.3
 
@@ -67,9 +92,10 @@ class Sequence:
         return len(self.inputs)
 
 
-def _rng(condition: str, split: str, index: int, seed: int) -> np.random.Generator:
+def _rng(condition: str, split: str, index: int, seed: int, *stream: int) -> np.random.Generator:
+    """The sequence's generator; ``stream`` (e.g. 1 for the sensor) names an independent one."""
     key = zlib.crc32(f"{condition}/{split}".encode())
-    return np.random.default_rng([seed, key, index])
+    return np.random.default_rng([seed, key, index, *stream])
 
 
 def _load_or_redraw(
@@ -174,6 +200,62 @@ def _slide(rng: np.random.Generator, a: trimesh.Trimesh, b: trimesh.Trimesh, vie
     return b, camera, poses, shrink
 
 
+@functools.lru_cache(maxsize=256)
+def _stable_poses(object_id: str, scale: float) -> tuple[np.ndarray, np.ndarray]:
+    mesh = load_object(object_id).apply_scale(scale)
+    poses, probs = trimesh.poses.compute_stable_poses(mesh)
+    if len(poses) == 0:  # a degenerate hull: rest on its lowest face as loaded
+        return np.eye(4)[None], np.ones(1)
+    return np.asarray(poses), np.asarray(probs) / np.sum(probs)
+
+
+def stable_pose(
+    mesh: trimesh.Trimesh, object_id: str, rng: np.random.Generator, scale: float = 1.0
+) -> tuple[np.ndarray, float]:
+    """A resting pose of ``mesh`` on the plane z = 0 and its probability: one of
+    ``trimesh.poses.compute_stable_poses`` drawn by probability, turned by a random yaw about
+    the table's normal and centred on the world's z axis, its lowest point on the plane."""
+    poses, probs = _stable_poses(object_id, scale)
+    k = int(rng.choice(len(poses), p=probs))
+    yaw = trimesh.transformations.rotation_matrix(rng.uniform(0, 2 * np.pi), [0, 0, 1])
+    pose = yaw @ poses[k]
+    v = grid.transform_points(mesh.vertices, pose)
+    lo, hi = v.min(0), v.max(0)
+    pose[:3, 3] -= [(lo[0] + hi[0]) / 2, (lo[1] + hi[1]) / 2, lo[2]]
+    return pose, float(probs[k])
+
+
+def table_mesh() -> trimesh.Trimesh:
+    """The tabletop condition's table: a slab whose top face is the plane z = 0."""
+    return trimesh.creation.box(TABLE_SIZE_M).apply_translation([0, 0, -TABLE_SIZE_M[2] / 2])
+
+
+def _tabletop_cameras(
+    rng: np.random.Generator, centre: np.ndarray, views: int
+) -> tuple[list[np.ndarray], str]:
+    """Camera poses of one tabletop sequence and the name of its motion."""
+    motion = CAMERA_MOTIONS[int(rng.integers(len(CAMERA_MOTIONS)))]
+    dist = rng.uniform(0.4, 1.0)
+    elevation = rng.uniform(20.0, 90.0)
+    azimuth0 = rng.uniform(0, 360.0)
+    t = np.arange(views)
+    if motion == "still":
+        az, el, d = np.full(views, azimuth0), np.full(views, elevation), np.full(views, dist)
+    elif motion == "pan":
+        az, el, d = azimuth0 + 30.0 * t, np.full(views, elevation), np.full(views, dist)
+    else:  # a wrist camera's short arc, closing in
+        frac = t / (views - 1)
+        az = azimuth0 + rng.choice([-1.0, 1.0]) * rng.uniform(40.0, 90.0) * frac
+        el = np.clip(elevation + rng.uniform(-20.0, 20.0) * frac, 20.0, 90.0)
+        d = np.maximum(dist * (1 - rng.uniform(0.0, 0.3) * frac), 0.4)
+    target = centre + rng.uniform(-0.01, 0.01, size=3)
+    cameras = []
+    for a, e, r in zip(np.radians(az), np.radians(el), d, strict=True):
+        eye = target + r * np.array([np.cos(a) * np.cos(e), np.sin(a) * np.cos(e), np.sin(e)])
+        cameras.append(look_at(eye, target))
+    return cameras, motion
+
+
 def curtain_position(t: int, views: int, *, reveal: bool) -> int:
     """Grid index of the curtain at view t; voxels with i ≤ position are covered."""
     step = t if not reveal else views - 1 - t
@@ -188,7 +270,8 @@ def make_sequence(
     *,
     views: int = VIEWS,
     pool: list[str] | None = None,
-    noise: DepthNoise | None = None,
+    noise: bool | None = None,
+    sensor: SensorModel = DEFAULT_SENSOR,
     keep_depth: bool = False,
     renderer: Renderer | None = None,
 ) -> Sequence:
@@ -196,6 +279,9 @@ def make_sequence(
 
     pool : object ids to draw from (default: every procedural and random_urdf object of
         ``split``). ``renderer`` may be passed to reuse one pybullet client across calls.
+    noise : pass the depth through ``sensor`` (None: the condition's default, on for
+        :data:`NOISY_BY_DEFAULT`). The sensor draws from its own generator, so a sequence with
+        noise shows the same scene as the one without.
     """
     if condition not in CONDITIONS:
         raise ValueError(f"condition must be one of {CONDITIONS}, got {condition!r}")
@@ -215,7 +301,17 @@ def make_sequence(
         meshes.append(mesh)
 
     scales = [1.0] * n_objects  # what each loaded mesh was scaled by before it was posed
-    if condition == "two_object_pan":
+    scenery: list[trimesh.Trimesh] = []  # rendered, never in the input or the target
+    extra: dict = {}
+    if condition == "tabletop":
+        pose, probability = stable_pose(meshes[0], chosen[0], rng)
+        object_poses = [[pose]] * views
+        centre = grid.transform_points(meshes[0].vertices, pose)
+        cameras, motion = _tabletop_cameras(rng, (centre.min(0) + centre.max(0)) / 2, views)
+        scenery = [table_mesh()]
+        extra = {"support_plane": list(TABLE_PLANE), "camera_motion": motion,
+                 "stable_pose_probability": probability}
+    elif condition == "two_object_pan":
         meshes, poses, scale = _pair(rng, *meshes)
         scales = [scale, scale]
         object_poses = [poses] * views
@@ -232,9 +328,13 @@ def make_sequence(
     r = Renderer() if own else renderer
     try:
         r.clear()
-        for mesh in meshes:
+        for mesh in [*meshes, *scenery]:
             r.add_mesh(mesh)
-        seq = _observe(r, condition, meshes, object_poses, cameras, rng, noise, keep_depth)
+        if noise is None:
+            noise = condition in NOISY_BY_DEFAULT
+        noise_rng = _rng(condition, split, index, seed, 1) if noise else None
+        seq = _observe(r, condition, meshes, object_poses, cameras,
+                       sensor if noise else None, noise_rng, keep_depth)
     finally:
         if own:
             r.close()
@@ -250,6 +350,10 @@ def make_sequence(
         intrinsics=r.intrinsics.as_dict(),
         object_to_world=[[p.tolist() for p in ps] for ps in object_poses],
         object_scale=[float(x) for x in scales],
+        noise=bool(noise),
+        elevation_deg=[round(float(np.degrees(np.arcsin(np.clip(-c[2, 2], -1, 1)))), 3)
+                       for c in cameras],
+        **extra,
     )
     return seq
 
@@ -260,8 +364,8 @@ def _observe(
     meshes: list[trimesh.Trimesh],
     object_poses: list[list[np.ndarray]],
     cameras: list[np.ndarray],
-    rng: np.random.Generator,
-    noise: DepthNoise | None,
+    sensor: SensorModel | None,
+    noise_rng: np.random.Generator | None,
     keep_depth: bool,
 ) -> Sequence:
     views = len(cameras)
@@ -274,8 +378,9 @@ def _observe(
         for i, pose in enumerate(poses):
             r.set_pose(i, pose)
         depth, mask = r.render(camera)
-        if noise is not None:
-            depth = noise.apply(depth, rng)
+        mask[mask >= len(meshes)] = -1  # scenery (the table): seen, never segmented
+        if sensor is not None:
+            depth = sensor.apply(depth, noise_rng)
         points = grid.depth_to_points(depth, r.intrinsics, mask >= 0)
         labels = mask[(mask >= 0) & (depth > 0)]
         visible.append([int((labels == i).sum()) for i in range(len(meshes))])

@@ -109,3 +109,67 @@ def test_an_unreadable_object_is_skipped_with_a_warning_that_names_it(renderer):
             return
         assert seq.meta["object_ids"] == ["proc/box/0"]
     raise AssertionError("no draw met urdf/168")
+
+
+@pytest.fixture(scope="module")
+def tabletop(renderer):
+    return [make_sequence("tabletop", "test", i, 0, renderer=renderer, keep_depth=True)
+            for i in range(3)]
+
+
+def _world_points(seq, t, voxels):
+    from completion import grid as G
+
+    cam = G.indices_to_points(np.argwhere(voxels), seq.grid_to_camera[t])
+    return G.transform_points(cam, seq.camera_to_world[t])
+
+
+def test_tabletop_object_rests_on_the_plane_and_the_target_has_nothing_below_it(tabletop):
+    from completion import grid as G
+    from completion.objects import load_object
+
+    for s in tabletop:
+        assert s.meta["support_plane"] == [0.0, 0.0, 1.0, 0.0] and s.meta["noise"]
+        mesh = load_object(s.meta["object_ids"][0])
+        pose = np.asarray(s.meta["object_to_world"][0][0])
+        lowest = G.transform_points(mesh.vertices, pose)[:, 2].min()
+        assert abs(lowest) < 1e-3  # resting on the table, not above it or in it
+        for t in range(len(s)):
+            pitch = G.pitch_of(s.grid_to_camera[t])
+            z = _world_points(s, t, s.targets[t])[:, 2]
+            assert len(z) and z.min() > -0.87 * pitch  # a voxel centre within half a diagonal
+
+
+def test_tabletop_input_is_the_object_not_the_table(tabletop):
+    for s in tabletop:
+        table = (s.mask == -1) & (s.depth > 0)
+        assert table.any()  # the table is rendered, occludes and forms edges ...
+        for t in range(len(s)):  # ... but never enters the input: points lie at the object
+            z = _world_points(s, t, s.inputs[t])[:, 2]
+            assert np.median(z) > 0.005
+
+
+def test_tabletop_cameras_cover_overhead_views_and_three_motions():
+    from completion.scenes import CAMERA_MOTIONS, _tabletop_cameras
+
+    elevations, motions, distances = [], set(), []
+    for i in range(60):
+        cameras, motion = _tabletop_cameras(np.random.default_rng(i), np.zeros(3), 12)
+        motions.add(motion)
+        for c in cameras:
+            forward = c[:3, 2]
+            elevations.append(np.degrees(np.arcsin(-forward[2])))
+            distances.append(np.linalg.norm(c[:3, 3]))
+    assert motions == set(CAMERA_MOTIONS)
+    assert min(elevations) >= 19.9 and max(elevations) <= 90.0
+    assert np.mean(np.array(elevations) >= 75) > 0.1  # overhead views occur
+    assert 0.38 <= min(distances) and max(distances) <= 1.02
+
+
+def test_tabletop_is_deterministic_in_its_seed_noise_included(renderer, tabletop):
+    a = make_sequence("tabletop", "test", 0, 0, renderer=renderer, keep_depth=True)
+    assert a.depth.tobytes() == tabletop[0].depth.tobytes()
+    assert a.inputs.tobytes() == tabletop[0].inputs.tobytes()
+    clean = make_sequence("tabletop", "test", 0, 0, renderer=renderer, noise=False)
+    assert clean.meta["object_to_world"] == a.meta["object_to_world"]  # the same scene
+    assert clean.inputs.tobytes() != a.inputs.tobytes()  # seen without the sensor
