@@ -11,8 +11,14 @@ view: occupancy probabilities (40, 40, 40) with the grid's ``grid_to_camera`` (t
 camera frame). A stream counts as having seen the object only after a view with at least one
 observed voxel; before that it reports 0 occupied voxels and has no completion.
 
-The whole stream state (model memory, current grid, latest logits, counters) serialises to bytes
-and back exactly, so a service can persist a session after every view.
+A support plane (the table the object rests on, world frame,
+:meth:`CompletionStream.set_support_plane`) cuts the completion: every voxel whose centre lies
+below it is empty in :meth:`CompletionStream.completion`, so meshing, planning and every output
+see nothing under the table. The views then need their camera poses (the plane is in the world
+frame, the grid in the latest camera's).
+
+The whole stream state (model memory, current grid, latest logits, counters, the plane) serialises
+to bytes and back exactly, so a service can persist a session after every view.
 """
 
 from __future__ import annotations
@@ -72,6 +78,17 @@ class CompletionStream:
         self._state = model.init_state(1)
         self._logits: np.ndarray | None = None
         self._observed: np.ndarray | None = None  # the latest view's input grid (bool)
+        self.support_plane: np.ndarray | None = None  # world [nx, ny, nz, d], |n| = 1
+
+    def set_support_plane(self, plane) -> None:
+        """Cut every completion at this plane from now on: [nx, ny, nz, d] in the world frame,
+        n·x + d = 0 with n pointing up (normalised here). ValueError for a plane that is not four
+        finite numbers with a non-zero normal, or when the latest view came without a camera
+        pose (the plane could not be placed in its frame)."""
+        if self.views and self.camera_to_world is None:
+            raise ValueError("a support plane is in the world frame: it needs the views' "
+                             "camera poses (the latest view came without one)")
+        self.support_plane = _unit_plane(plane)
 
     # ------------------------------------------------------------------ input
     def add_view(
@@ -83,8 +100,11 @@ class CompletionStream:
         points: np.ndarray | None = None,
         grid: G.VoxelGrid | None = None,
         camera_to_world: np.ndarray | None = None,
+        support_plane: np.ndarray | None = None,
     ) -> ViewResult:
-        """Add one view given as exactly one of depth (+ intrinsics, mask), points or grid."""
+        """Add one view given as exactly one of depth (+ intrinsics, mask), points or grid;
+        ``support_plane`` (world frame, needs ``camera_to_world``) is kept from this view on, as
+        :meth:`set_support_plane` would, and already cuts this view's completion."""
         given = [x is not None for x in (depth, points, grid)]
         if sum(given) != 1:
             raise ValueError("give exactly one of depth (with intrinsics), points or grid")
@@ -96,6 +116,11 @@ class CompletionStream:
             camera_to_world = np.asarray(camera_to_world, dtype=np.float64)
             if camera_to_world.shape != (4, 4) or not np.isfinite(camera_to_world).all():
                 raise ValueError("camera_to_world must be a finite 4×4 matrix")
+        elif self.support_plane is not None or support_plane is not None:
+            raise ValueError("a support plane is in the world frame: every view of a stream "
+                             "with one needs its camera pose")
+        if support_plane is not None:
+            self.support_plane = _unit_plane(support_plane)
         bounds = None
         if grid is None:
             pts = G.as_points(points)
@@ -125,8 +150,20 @@ class CompletionStream:
         self._observed = np.asarray(occ, dtype=bool)
         self.grid_to_camera = transform
         self.camera_to_world = camera_to_world
-        occupied = int((self._logits >= _logit(self.threshold)).sum()) if self.seen else 0
+        occupied = 0
+        if self.seen:
+            above = self._logits >= _logit(self.threshold)
+            below = self._below_plane()
+            occupied = int((above if below is None else above & ~below).sum())
         return ViewResult(index, observed, occupied)
+
+    def _below_plane(self) -> np.ndarray | None:
+        """(40, 40, 40) bool: the current grid's voxels below the support plane (None: no plane
+        or no grid)."""
+        if self.support_plane is None or self.grid_to_camera is None:
+            return None
+        plane = G.plane_in_frame(self.support_plane, self.camera_to_world)
+        return G.voxels_below_plane(self.grid_to_camera, plane)
 
     # ------------------------------------------------------------------ output
     def completion(self) -> Completion:
@@ -134,6 +171,9 @@ class CompletionStream:
         if not self.seen or self._logits is None or self.grid_to_camera is None:
             raise NoObjectError("no view with object points has been added yet")
         probs = (1.0 / (1.0 + np.exp(-self._logits.astype(np.float64)))).astype(np.float32)
+        below = self._below_plane()
+        if below is not None:
+            probs[below] = 0.0  # nothing under the table
         return Completion(probs, self.grid_to_camera.copy(), self.threshold, self.views)
 
     def observed_points(self) -> np.ndarray:
@@ -165,6 +205,8 @@ class CompletionStream:
             arrays["seen_bounds"] = self._seen_bounds
         if self._observed is not None:
             arrays["observed"] = np.packbits(self._observed.reshape(-1))
+        if self.support_plane is not None:
+            arrays["support_plane"] = self.support_plane
         np.savez(buf, **arrays)
         return buf.getvalue()
 
@@ -182,9 +224,25 @@ class CompletionStream:
             stream._seen_bounds = z["seen_bounds"] if "seen_bounds" in z else None
             if "observed" in z:
                 stream._observed = G.VoxelGrid.unpack(z["observed"].tobytes())
+            stream.support_plane = z["support_plane"] if "support_plane" in z else None
             # states stored before "seen" existed: seen once a grid was fitted
             stream.seen = bool(z["seen"]) if "seen" in z else stream.grid_to_camera is not None
         return stream
+
+
+def stored_support_plane(data: bytes) -> np.ndarray | None:
+    """The support plane (world frame) kept in a stream state (:meth:`CompletionStream.to_bytes`),
+    read without a model; None when the stream has none."""
+    with np.load(io.BytesIO(data), allow_pickle=False) as z:
+        return z["support_plane"] if "support_plane" in z else None
+
+
+def _unit_plane(plane) -> np.ndarray:
+    p = np.asarray(plane, dtype=np.float64).reshape(-1)
+    if p.shape != (4,) or not np.isfinite(p).all() or np.linalg.norm(p[:3]) < 1e-9:
+        raise ValueError(f"a support plane is four finite numbers [nx, ny, nz, d] with a "
+                         f"non-zero normal, got {np.asarray(plane).tolist()}")
+    return p / np.linalg.norm(p[:3])
 
 
 def _logit(p: float) -> float:

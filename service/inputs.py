@@ -42,10 +42,12 @@ class DecodedView:
     points: np.ndarray | None = None  # (n, 3) float64, camera frame, metres
     grid: VoxelGrid | None = None
     camera_to_world: np.ndarray | None = None  # (4, 4) float64
+    support_plane: np.ndarray | None = None  # (4,) world frame, kept by the session
 
     def add_view_kwargs(self) -> dict:
         """Keyword arguments for :meth:`completion.stream.CompletionStream.add_view`."""
-        return {"points": self.points, "grid": self.grid, "camera_to_world": self.camera_to_world}
+        return {"points": self.points, "grid": self.grid, "camera_to_world": self.camera_to_world,
+                "support_plane": self.support_plane}
 
 
 def decode_view(view: ViewIn, *, max_image_pixels: int, max_points: int) -> DecodedView:
@@ -56,15 +58,27 @@ def decode_view(view: ViewIn, *, max_image_pixels: int, max_points: int) -> Deco
     checked like client-sent ones.
     """
     pose = None if view.camera_pose is None else _camera_pose(view.camera_pose)
+    plane = None
+    if view.support_plane is not None:
+        if pose is None:
+            raise InputError(("body", "support_plane"),
+                             "support_plane is in the world frame: it needs this view's "
+                             "camera_pose")
+        plane = np.asarray(view.support_plane, dtype=np.float64)
+        if np.linalg.norm(plane[:3]) < 1e-9:
+            raise InputError(("body", "support_plane"),
+                             "support_plane is [nx, ny, nz, d] with a non-zero normal n "
+                             f"(pointing up), got {view.support_plane}")
+    posed = {"camera_to_world": pose, "support_plane": plane}
     if view.points is not None:
         if len(view.points) > max_points:
             raise InputError(
                 ("body", "points"), f"at most {max_points} points per view, got {len(view.points)}"
             )
         points = np.asarray(view.points, dtype=np.float64).reshape(-1, 3)
-        return DecodedView(points=_checked_points(points), camera_to_world=pose)
+        return DecodedView(points=_checked_points(points), **posed)
     if view.grid is not None:
-        return DecodedView(grid=_grid(view.grid), camera_to_world=pose)
+        return DecodedView(grid=_grid(view.grid), **posed)
     assert view.depth is not None and view.intrinsics is not None  # ViewIn's own check
     depth = _depth(view.depth, max_image_pixels)  # (H, W) uint16 mm or float32 m, as sent
     mask = None if view.mask is None else _mask(view.mask, depth.shape)
@@ -80,7 +94,7 @@ def decode_view(view: ViewIn, *, max_image_pixels: int, max_points: int) -> Deco
         metres /= 1000.0
     with np.errstate(over="ignore", invalid="ignore"):
         points = depth_to_points(metres, intrinsics, mask)
-    return DecodedView(points=_checked_points(points, from_depth=True), camera_to_world=pose)
+    return DecodedView(points=_checked_points(points, from_depth=True), **posed)
 
 
 def thinning_step(depth: np.ndarray, mask: np.ndarray | None, max_points: int) -> int:

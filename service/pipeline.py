@@ -56,6 +56,7 @@ class Snapshot:
     completion: Completion
     camera_to_world: np.ndarray | None  # (4, 4) of the latest view, when given
     observed: np.ndarray  # (n, 3) the latest view's observed voxel centres
+    support_plane: np.ndarray | None = None  # (4,) world frame, when the session keeps one
 
 
 class Pipeline:
@@ -132,6 +133,33 @@ class Pipeline:
             )
         return CompletionStream.from_bytes(self.model, record.state)
 
+    def set_support_plane(self, session_id: str, plane: np.ndarray) -> None:
+        """Keep ``plane`` (world frame) with the session from now on (the caller holds its lock,
+        as for a view); nothing is written when the session already keeps the same plane."""
+        for _ in range(UPDATE_ATTEMPTS):
+            record = self.store.get(session_id)
+            stream = self._stream(record)
+            before = stream.support_plane
+            if stream.views and stream.camera_to_world is None:
+                raise InputError(("query", "support_plane"),
+                                 "support_plane is in the world frame: it needs the views' "
+                                 "camera_pose (the latest view came without one)")
+            try:
+                stream.set_support_plane(plane)
+            except ValueError as exc:
+                raise InputError(("query", "support_plane"), str(exc)) from exc
+            if before is not None and np.allclose(before, stream.support_plane, atol=1e-12):
+                return
+            try:
+                self.store.update(record, state=stream.to_bytes(), views=stream.views,
+                                  object_seen=stream.seen)
+            except ConcurrentUpdate:
+                continue
+            return
+        raise ConcurrentUpdate(
+            f"session {session_id!r} kept changing while its support plane was stored; retry"
+        )
+
     # ---------------------------------------------------------------------------- outputs
     def snapshot(self, session_id: str) -> Snapshot:
         """The latest completion; raises NoObjectError before any view with object points."""
@@ -166,7 +194,8 @@ class Pipeline:
 
 
 def _snapshot(record: SessionRecord, stream: CompletionStream, completion: Completion) -> Snapshot:
-    return Snapshot(record, completion, stream.camera_to_world, stream.observed_points())
+    return Snapshot(record, completion, stream.camera_to_world, stream.observed_points(),
+                    stream.support_plane)
 
 
 def _step(stream: CompletionStream, view: DecodedView) -> ViewResult:

@@ -16,6 +16,7 @@ import numpy as np
 from fastapi import APIRouter, Depends, Path, Query, Request, Response, status
 
 from completion.mesh import MeshFormat, export_mesh
+from completion.stream import stored_support_plane
 from grasp.autograsp import pregrasp_pose
 from grasp.planner import SupportPlane, hand_primitives, palm_touches, too_large
 from hands.barrett import JOINT_NAMES
@@ -121,8 +122,9 @@ SupportPlaneQuery = Annotated[
     Query(
         max_length=200,
         description="the surface the object rests on, 'nx,ny,nz,d' in the world frame "
-        "(n·x + d = 0, n pointing up, not zero; metres): no approach from below it, "
-        "no hand below it. Needs camera poses on the views.",
+        "(n·x + d = 0, n pointing up, not zero; metres): the session keeps it (as if given "
+        "on POST /views), the completion is cut at it and the hand treats it as an obstacle. "
+        "Needs camera poses on the views.",
         examples=["0,0,1,0"],
         json_schema_extra={"pattern": SUPPORT_PLANE_PATTERN.pattern},
     ),
@@ -176,15 +178,14 @@ async def plan_session(
             plane = SupportPlane.parse(support_plane)
         except ValueError as exc:
             raise InputError(("query", "support_plane"), str(exc)) from None
+        async with services.exclusive(session_id):  # the session keeps it from now on
+            await services.infer(services.pipeline.set_support_plane, session_id,
+                                 np.array([*plane.normal, plane.offset]))
     snapshot, mesh, timing = await services.infer(services.pipeline.grasp_mesh, session_id)
-    if plane is not None:
-        if snapshot.camera_to_world is None:
-            raise InputError(
-                ("query", "support_plane"),
-                "support_plane is in the world frame: it needs the views' camera_pose "
-                "(the latest view came without one)",
-            )
-        plane = plane.transformed(snapshot.camera_to_world)  # into the latest camera frame
+    plane = None
+    if snapshot.support_plane is not None:  # into the latest camera frame
+        kept = snapshot.support_plane
+        plane = SupportPlane(kept[:3], float(kept[3])).transformed(snapshot.camera_to_world)
     problem = too_large(mesh)
     if problem is not None:  # nothing the hand can close on: say so, plan nothing
         timing |= {"planning": 0.0, "waiting": 0.0, "total": (time.perf_counter() - start) * 1e3}
@@ -205,9 +206,10 @@ async def plan_session(
 
 @router.get("/sessions/{session_id}", response_model=SessionOut, responses=_errors(404))
 async def get_session(session_id: PathId, services: ServicesDep) -> SessionOut:
-    """A session's view count and times."""
+    """A session's view count, times and the support plane it keeps."""
     record = await services.io(services.pipeline.store.get, session_id)
     ttl = services.pipeline.store.ttl_of(record)
+    plane = await services.io(stored_support_plane, record.state)
     return SessionOut(
         session_id=record.id,
         views=record.views,
@@ -215,6 +217,7 @@ async def get_session(session_id: PathId, services: ServicesDep) -> SessionOut:
         created=datetime.fromtimestamp(record.created, UTC),
         updated=datetime.fromtimestamp(record.updated, UTC),
         expires=datetime.fromtimestamp(record.updated + ttl, UTC),
+        support_plane=None if plane is None else plane.tolist(),
     )
 
 

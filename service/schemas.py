@@ -78,6 +78,12 @@ class ViewIn(_Strict):
         "[0, 0, 0, 1], metres); while it stays the same from view to view, the grid "
         "is fitted to every point seen from that pose (a fixed camera watching objects move)",
     )
+    support_plane: Row4 | None = Field(
+        None,
+        description="the table the object rests on, [nx, ny, nz, d] in the world frame (n·x + d "
+        "= 0, n pointing up, metres; needs camera_pose). The session keeps it: the completion "
+        "is cut at it (nothing below the table) and every grasp treats it as an obstacle",
+    )
 
     @model_validator(mode="after")
     def _one_input(self) -> ViewIn:
@@ -186,6 +192,10 @@ class SessionOut(BaseModel):
     created: datetime
     updated: datetime
     expires: datetime = Field(description="when the session is deleted unless a view arrives")
+    support_plane: list[float] | None = Field(
+        None, description="the support plane the session keeps, [nx, ny, nz, d] in the world "
+        "frame (|n| = 1), once POST /views or GET /grasp gave one"
+    )
 
 
 class OccupancyOut(BaseModel):

@@ -25,7 +25,7 @@ from service_helpers import (
     stored_state,
 )
 
-from completion.grid import VoxelGrid
+from completion.grid import VoxelGrid, pitch_of, transform_points
 from completion.mesh import load_mesh_bytes
 from service.app import create_app
 from service.client import depth_f32_m, grid_field, intrinsics_field, scene_views
@@ -173,6 +173,41 @@ def test_grasp_on_a_support_plane(client, scene):
         hand = GraspResult(True, "", world, HandJoints(**g["joints_deg"]),
                            HandDofs(*g["dofs_deg"]))
         assert plane.height(hand_points(hand)).min() >= -1e-6
+    # the session keeps the plane: reported, and the completion is cut at it
+    kept = client.get(f"/sessions/{sid}").json()["support_plane"]
+    np.testing.assert_allclose(kept, [0, 0, 1, -lowest], atol=1e-9)
+    bits, occ = occupancy(client, sid)
+    centres = VoxelGrid(bits, np.asarray(occ["grid_to_camera"])).points()
+    assert plane.height(transform_points(centres, camera)).min() >= 0
+    again = client.get("/grasp", params={"session_id": sid, "n_candidates": 16}).json()
+    assert again["support_plane"] == r.json()["support_plane"]  # without the query: kept
+
+
+def test_a_support_plane_given_with_a_view_cuts_the_completion_below_it(client, scene):
+    bodies = scene_views(scene)[:2]
+    camera = np.asarray(bodies[0]["camera_pose"])
+    sid = new_session(client, bodies[0])
+    bits, occ = occupancy(client, sid)
+    z = transform_points(VoxelGrid(bits, np.asarray(occ["grid_to_camera"])).points(), camera)[:, 2]
+    middle = float(np.median(z))  # a plane through the middle of the completion
+    assert client.get(f"/sessions/{sid}").json()["support_plane"] is None
+    r = client.post("/views", json=bodies[1] | {"session_id": sid,
+                                                "support_plane": [0, 0, 2, -2 * middle]})
+    assert r.status_code == 200, r.text
+    assert client.get(f"/sessions/{sid}").json()["support_plane"] == [0, 0, 1, -middle]
+    bits, occ = occupancy(client, sid)
+    assert occ["occupied_voxels"] == r.json()["occupied_voxels"] > 0
+    transform = np.asarray(occ["grid_to_camera"])
+    camera = np.asarray(bodies[1]["camera_pose"])
+    assert transform_points(VoxelGrid(bits, transform).points(), camera)[:, 2].min() >= middle
+    mesh = load_mesh_bytes(client.get(f"/sessions/{sid}/mesh").content, "ply")
+    lowest = transform_points(mesh.vertices, camera)[:, 2].min()
+    assert lowest >= middle - pitch_of(transform)  # marching cubes closes the cut in a voxel
+    no_pose = {k: v for k, v in bodies[1].items() if k != "camera_pose"}
+    r = client.post("/views", json=no_pose | {"session_id": sid})
+    assert r.status_code == 422 and "camera pose" in r.text, r.text  # the plane needs poses
+    r = client.post("/views", json=no_pose | {"support_plane": [0, 0, 1, 0]})
+    assert r.status_code == 422 and "camera_pose" in r.text, r.text
 
 
 def test_a_shape_metres_across_is_answered_without_planning(client):
