@@ -130,6 +130,12 @@ def test_page_renders_in_chromium_and_switches_grasps(session, tmp_path):
     a = np.asarray(Image.open(io.BytesIO(first)).convert("RGB"), dtype=np.int16)
     b = np.asarray(Image.open(io.BytesIO(second)).convert("RGB"), dtype=np.int16)
     assert (np.abs(a - b).sum(axis=-1) > 30).mean() > 0.005  # the picture changed
+    for picture in (a, b):  # framed on the object and the selected hand: they fill the view
+        dark = picture.sum(axis=-1) < 3 * 170  # the hand
+        orange = picture[..., 0] - picture[..., 2] > 60  # the completion
+        ys, xs = np.nonzero(dark | orange)
+        h, w = dark.shape
+        assert max((ys.max() - ys.min()) / h, (xs.max() - xs.min()) / w) > 0.5
     (tmp_path / "inspector.png").write_bytes(whole)
     if os.environ.get("INSPECTOR_SCREENSHOT"):  # how the README's screenshot is made
         shutil.copy(tmp_path / "inspector.png", os.environ["INSPECTOR_SCREENSHOT"])

@@ -138,22 +138,31 @@ async function main() {
     root.add(hand);
     return hand;
   });
-  // frame the object and the hands (world = three.js coordinates), before the plane
-  const sphere = new THREE.Box3().setFromObject(root).getBoundingSphere(new THREE.Sphere());
   if (plan.support_plane) root.add(planeMesh(plan.support_plane, centre, 3 * size));
 
   const fov = 40;
   const camera = new THREE.PerspectiveCamera(fov, viewport.clientWidth / viewport.clientHeight,
     0.01, 20);
-  // look from the depth camera's side (the camera frame's origin), a little from above
-  const target = sphere.center;
-  const towardCamera = target.clone().negate().normalize();
-  towardCamera.y += 0.5;
-  const distance = 0.62 * sphere.radius / Math.sin(THREE.MathUtils.degToRad(fov / 2));
-  camera.position.copy(target).addScaledVector(towardCamera.normalize(), distance);
+  // "up" in three.js coordinates: the table's normal when there is one, else the image's up
+  const [nx, ny, nz] = plan.support_plane || [0, -1, 0];
+  const up = new THREE.Vector3(nx, -ny, -nz).normalize(); // the root's turn: y and z flip
+  camera.up.copy(up); // before the controls, which orbit about it
   const controls = new OrbitControls(camera, renderer.domElement);
-  controls.target.copy(target);
-  controls.update();
+
+  // frame the completion and the selected hand so that they fill most of the view, looking
+  // from the depth camera's side (the camera frame's origin) and from above
+  function frame(index) {
+    scene.updateMatrixWorld(true);
+    const box = new THREE.Box3().setFromObject(completion);
+    if (hands[index]) box.union(new THREE.Box3().setFromObject(hands[index]));
+    const sphere = box.getBoundingSphere(new THREE.Sphere());
+    const target = sphere.center;
+    const toward = target.clone().negate().normalize().addScaledVector(up, 0.6).normalize();
+    const distance = 0.9 * sphere.radius / Math.sin(THREE.MathUtils.degToRad(fov / 2));
+    camera.position.copy(target).addScaledVector(toward, distance);
+    controls.target.copy(target);
+    controls.update();
+  }
 
   function select(index) {
     hands.forEach((hand, i) => hand.traverse((child) => {
@@ -164,6 +173,7 @@ async function main() {
       }
     }));
     [...listEl.children].forEach((item, i) => item.classList.toggle('selected', i === index));
+    frame(index);
     renderer.render(scene, camera);
   }
 
