@@ -89,15 +89,22 @@ def check_loopback(url: str) -> str:
     return url.rstrip("/")
 
 
-def make_bodies(n_scenes: int, views: int, seed: int) -> list[list[dict]]:
-    """``n_scenes`` simulated camera_pan scenes (test split) as lists of view bodies."""
+def make_bodies(
+    n_scenes: int, views: int, seed: int, condition: str = "camera_pan"
+) -> list[list[dict]]:
+    """``n_scenes`` simulated scenes of ``condition`` (test split) as lists of view bodies; a
+    tabletop scene's first view carries its table as the session's support plane."""
     from completion.scenes import make_sequence
     from service.client import scene_views
 
-    return [
-        scene_views(make_sequence("camera_pan", "test", i, seed, views=views, keep_depth=True))
-        for i in range(n_scenes)
-    ]
+    scenes = []
+    for i in range(n_scenes):
+        seq = make_sequence(condition, "test", i, seed, views=views, keep_depth=True)
+        bodies = scene_views(seq)
+        if "support_plane" in seq.meta:
+            bodies[0]["support_plane"] = list(seq.meta["support_plane"])
+        scenes.append(bodies)
+    return scenes
 
 
 async def _timed(client, tally: Tally, route: str, method: str, url: str, **kwargs):
@@ -175,6 +182,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--views", type=int, default=12, help="views per session (at least 2)")
     p.add_argument("--concurrency", type=int, default=8, help="sessions streaming at once")
     p.add_argument("--scenes", type=int, default=4, help="distinct simulated scenes, cycled")
+    p.add_argument("--condition", choices=("camera_pan", "tabletop"), default="camera_pan",
+                   help="the scenes: objects floating (camera_pan) or resting on a table whose "
+                   "plane each session is given with its first view (tabletop)")
     p.add_argument("--n-candidates", type=int, default=64, help="GET /grasp n_candidates")
     p.add_argument(
         "--grasp-every-view",
@@ -198,7 +208,7 @@ def main(argv: list[str] | None = None) -> int:
             p.error(f"--{name.replace('_', '-')} is too small: {getattr(args, name)}")
 
     print(f"rendering {args.scenes} scenes × {args.views} views …", flush=True)
-    scenes = make_bodies(min(args.scenes, args.sessions), args.views, args.seed)
+    scenes = make_bodies(min(args.scenes, args.sessions), args.views, args.seed, args.condition)
     print(
         f"{args.sessions} sessions × {args.views} views against {args.url} "
         f"({args.concurrency} at a time, n_candidates={args.n_candidates})",

@@ -15,7 +15,7 @@ from completion.cli import name_list
 from completion.config import ModelConfig
 from completion.grid import GRID_SHAPE
 from completion.model import WEIGHTS_DIR, build_model, save_checkpoint
-from completion.scenes import CONDITIONS, SINGLE_OBJECT_CONDITIONS
+from completion.scenes import CONDITIONS, PAPER_CONDITIONS, SINGLE_OBJECT_CONDITIONS
 from grasp import evaluate as ev
 from grasp.evaluate.aggregate import aggregate
 from grasp.evaluate.runner import Evaluator, SequenceResult
@@ -58,6 +58,44 @@ def _tiny_weights(folder, *, logit: float | None = 2.0) -> dict[str, str]:
 
 
 # ------------------------------------------------------------------------------ fusion reference
+
+
+def test_below_plane_counts_voxel_centres_under_the_support_plane():
+    from completion.scenes import Sequence
+    from grasp.evaluate.runner import below_plane
+
+    grid = np.diag([0.01, 0.01, 0.01, 1.0])
+    grid[:3, 3] = [0.0, 0.0, -0.105]  # voxel k's centre at z = 0.01 k − 0.105
+    camera = np.eye(4)
+    camera[:3, 3] = [0.0, 0.0, 0.5]  # the camera frame sits 0.5 m up in the world
+    seq = Sequence(np.zeros((1, 40, 40, 40), bool), np.zeros((1, 40, 40, 40), bool),
+                   grid[None], camera[None], meta={"support_plane": [0.0, 0.0, 1.0, 0.45]})
+    occupied = np.zeros((40, 40, 40), bool)
+    occupied[5, 5, 0:10] = True  # world z = 0.395 + 0.01 k: below the plane z = −0.45? none
+    assert below_plane(occupied, seq, 0) == 0.0
+    seq.meta["support_plane"] = [0.0, 0.0, 1.0, -0.44]  # the plane z = 0.44: k ≤ 4 below
+    assert below_plane(occupied, seq, 0) == pytest.approx(0.5)
+    assert below_plane(np.zeros_like(occupied), seq, 0) == 0.0
+
+
+def test_benchmark_objects_and_success_intervals():
+    from grasp.evaluate.benchmark import benchmark_objects, summarise, wilson
+
+    objects = benchmark_objects(30, 0)
+    assert objects == benchmark_objects(30, 0) != benchmark_objects(30, 1)
+    assert len(set(objects)) == 30 and objects[0] == "named/mug" and objects[10] == "named/duck"
+    assert all(o.split("/")[0] in ("proc", "urdf") for k, o in enumerate(objects) if k % 10)
+    assert wilson(0, 10) == pytest.approx([0.0, 0.2775], abs=1e-4)  # textbook values
+    assert wilson(10, 10) == pytest.approx([0.7225, 1.0], abs=1e-4)
+    assert wilson(45, 50) == pytest.approx([0.7864, 0.9565], abs=1e-4)
+    records = [{"a": {"held": True, "reason": "held"}},
+               {"a": {"held": False, "reason": "the object left the hand during lift, 0.5 s"}},
+               {"a": {"held": False, "reason": "the object left the hand during shake, 2.1 s"}},
+               {"a": {"held": False, "reason": "no grasp planned"}}]
+    cell = summarise(records, ["a"])["a"]
+    assert (cell["held"], cell["tested"]) == (1, 4)
+    assert cell["reasons"] == {"no grasp planned": 1, "the object left the hand during lift": 1,
+                               "the object left the hand during shake": 1}
 
 
 def test_registered_fusion_maps_observed_voxels_with_the_camera_poses():
@@ -166,6 +204,12 @@ def tiny_run(tmp_path_factory):
         "1",
         "--named",
         "1",
+        "--overhead",
+        "4",  # tabletop test index 3 of seed 3 is seen from 81°
+        "--benchmark",
+        "1",
+        "--benchmark-candidates",
+        "8",
         "--views",
         "3",
         "--candidates",
@@ -257,6 +301,29 @@ def test_tiny_run_writes_its_reports(tiny_run):
             assert views[ev.MEMORY_OFF][condition][split][0] == pytest.approx(
                 views["mvp"][condition][split][0], abs=1e-6), condition
     assert "MVP, memory off" in report
+    sensor = results["sensor_noise"]
+    for row in ev.ROWS:
+        for condition in PAPER_CONDITIONS:
+            assert sensor["n"][row][condition] == 1
+            assert 0.0 <= sensor["jaccard"][row][condition]["mean"] <= 1.0
+            assert sensor["noiseless"][row][condition] == results["tables"]["jaccard"][row][
+                condition]["test"]
+    assert "tabletop" not in sensor["jaccard"]["mvp"]  # on by default there: no sensor column
+    overhead = results["tabletop_overhead"]
+    assert overhead["searched"] == 4 and overhead["views"] >= 3 and overhead["sequences"] >= 1
+    for row in ev.ROWS:
+        assert 0.0 <= overhead["below_plane_share"][row] <= 1.0
+    assert 0.0 <= overhead["target_below_plane_share"] < 0.1
+    assert "with the sensor model on" in report and "Tabletop seen from above" in report
+    bench = results["grasp_benchmark"]
+    assert list(bench) == ["true_mesh", "mvp_1view", "mvp_4views", "single_view_1view",
+                           "registered_fusion_4views"]
+    for cell in bench.values():
+        assert cell["tested"] == 1 and cell["held"] in (0, 1)
+        assert 0 <= cell["ci95"][0] <= cell["held"] <= cell["ci95"][1] <= 1
+        assert sum(cell["reasons"].values()) == 1 - cell["held"]
+    assert results["grasp_benchmark_objects"] == ["named/mug"]
+    assert "Grasp success on a table" in report
     records = [r for r in results["per_object"] if r["table"] == "main"]
     assert len(records) == len(CONDITIONS) * 2 * len(ev.ROWS)
     for kind in ("wall", "cpu"):
@@ -267,6 +334,7 @@ def test_tiny_run_writes_its_reports(tiny_run):
             "completion_metrics",
             "grasping",
             "physics",
+            "benchmark",
         }
         assert all(v >= 0 for v in stages.values()) and stages["grasping"] > 0
         assert stages["physics"] > 0

@@ -101,6 +101,13 @@ def test_load_generator(server):
     assert r.returncode == 0, r.stdout + r.stderr
     assert "POST /views" in r.stdout and "GET /grasp" in r.stdout
     assert "views sent 9, lost 0" in r.stdout
+    r = subprocess.run(  # objects on a table, the plane given with each session's first view
+        [sys.executable, "-m", "service.load", "--url", server.url, "--sessions", "1",
+         "--views", "2", "--scenes", "1", "--n-candidates", "4", "--condition", "tabletop",
+         "--grasp-every-view"],
+        cwd=REPO, capture_output=True, text=True, timeout=300,
+    )  # fmt: skip
+    assert r.returncode == 0 and "views sent 2, lost 0" in r.stdout, r.stdout + r.stderr
     assert httpx.get(f"{server.url}/healthz").json()["sessions"] >= 0
     r = subprocess.run(
         [sys.executable, "-m", "service.load", "--url", "http://10.1.2.3:8000"],

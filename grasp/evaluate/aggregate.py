@@ -8,6 +8,7 @@ import numpy as np
 
 from completion.scenes import CONDITIONS, SINGLE_OBJECT_CONDITIONS
 from grasp.evaluate.config import (
+    BENCHMARK_TABLE,
     EVAL_SPLITS,
     FOLDER_TABLE,
     FSCORE_METRICS,
@@ -17,7 +18,10 @@ from grasp.evaluate.config import (
     METRICS,
     NAMED_OBJECTS_TABLE,
     OBJECT_TABLE_CONDITION,
+    OVERHEAD_MIN_ELEVATION_DEG,
+    OVERHEAD_TABLE,
     PAPER_TABLES,
+    SENSOR_TABLE,
     TRUE_MESH,
     Settings,
 )
@@ -176,6 +180,10 @@ def fscore_ceiling(ceiling: dict) -> dict:
 def per_object_records(results: list[SequenceResult], settings: Settings) -> list[dict]:
     records = []
     for r in results:
+        if r.job.table == BENCHMARK_TABLE:
+            records.append({"table": r.job.table, "index": r.job.index,
+                            "object_ids": r.object_ids, "benchmark": r.benchmark})
+            continue
         for row in settings.rows:
             g = r.grasps.get(row)
             records.append(
@@ -218,6 +226,64 @@ def _pooled_per_joint(results: list[SequenceResult], settings: Settings) -> dict
     return out
 
 
+def sensor_table(results: list[SequenceResult], settings: Settings, main: dict) -> dict | None:
+    """results.json's ``sensor_noise``: the paper's five conditions (test split) seen through the
+    sensor model, Jaccard per row and condition with its SE, beside the same sequences without it
+    (``noiseless``, the main table) and the difference; None when the run has no sensor table."""
+    mine = [r for r in results if r.job.table == SENSOR_TABLE]
+    if not mine:
+        return None
+    conditions = sorted({r.job.condition for r in mine}, key=CONDITIONS.index)
+    out: dict = {"split": "test", "jaccard": {}, "noiseless": {}, "difference": {}, "n": {}}
+    for row in settings.rows:
+        for key in ("jaccard", "noiseless", "difference", "n"):
+            out[key][row] = {}
+        for c in conditions:
+            noisy = [np.mean(r.per_view[row]["jaccard"]) for r in mine if r.job.condition == c]
+            cell = mean_and_se(noisy)
+            clean = main["tables"]["jaccard"][row].get(c, {}).get("test")
+            out["jaccard"][row][c] = cell
+            out["noiseless"][row][c] = clean
+            out["difference"][row][c] = (None if cell is None or clean is None
+                                         else round(cell["mean"] - clean, 4))
+            out["n"][row][c] = len(noisy)
+    return out
+
+
+def overhead_table(results: list[SequenceResult], settings: Settings) -> dict | None:
+    """results.json's ``tabletop_overhead``: every view of the overhead table's tabletop
+    sequences taken from at least :data:`OVERHEAD_MIN_ELEVATION_DEG` of elevation, per row: mean
+    Jaccard and the mean share of the completion below the table (before any cut), with the
+    target's own share (voxels the table's surface cuts) as the floor; None without such views."""
+    views = [(r, v) for r in results if r.job.table == OVERHEAD_TABLE
+             for v, e in enumerate(r.elevation_deg) if e >= OVERHEAD_MIN_ELEVATION_DEG]
+    if not views:
+        return None
+    return {
+        "min_elevation_deg": OVERHEAD_MIN_ELEVATION_DEG,
+        "views": len(views),
+        "sequences": len({id(r) for r, _ in views}),
+        "searched": sum(r.job.table == OVERHEAD_TABLE for r in results),
+        "jaccard": {row: mean_or_none(r.per_view[row]["jaccard"][v] for r, v in views)
+                    for row in settings.rows},
+        "below_plane_share": {row: mean_or_none(r.per_view[row]["below_plane"][v]
+                                                for r, v in views) for row in settings.rows},
+        "target_below_plane_share": mean_or_none(r.ceiling["below_plane"][v] for r, v in views),
+    }
+
+
+def benchmark_table(results: list[SequenceResult]) -> dict | None:
+    """results.json's ``grasp_benchmark`` (:func:`grasp.evaluate.benchmark.summarise`); None when
+    the run had no benchmark."""
+    from grasp.evaluate.benchmark import BENCHMARK_ROWS, summarise
+
+    mine = [r for r in results if r.job.table == BENCHMARK_TABLE]
+    if not mine:
+        return None
+    rows = [row for row in BENCHMARK_ROWS if any(row in r.benchmark for r in mine)]
+    return summarise([r.benchmark for r in mine], rows)
+
+
 def build_results(results: list[SequenceResult], settings: Settings, wall: dict) -> dict:
     """Everything results.json holds, from the per-sequence results of one run."""
     from grasp.evaluate.config import config_dict
@@ -238,6 +304,11 @@ def build_results(results: list[SequenceResult], settings: Settings, wall: dict)
         "jaccard_precision": main["jaccard_precision"],
         "named_objects": None,
         "objects_dir": None,
+        "sensor_noise": sensor_table(results, settings, main),
+        "tabletop_overhead": overhead_table(results, settings),
+        "grasp_benchmark": benchmark_table(results),
+        "grasp_benchmark_objects": [r.object_ids[0] for r in results
+                                    if r.job.table == BENCHMARK_TABLE],
         "per_object": per_object_records(results, settings),
         "config": config_dict(settings),
         "paper_tables": PAPER_TABLES,

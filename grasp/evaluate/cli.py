@@ -67,7 +67,7 @@ def build_parser() -> argparse.ArgumentParser:
         "--conditions",
         type=name_list(CONDITIONS, "conditions"),
         default=CONDITIONS,
-        help="comma-separated conditions (default: all five)",
+        help="comma-separated conditions (default: all six: the paper's five and tabletop)",
     )
     p.add_argument(
         "--models",
@@ -108,6 +108,37 @@ def build_parser() -> argparse.ArgumentParser:
         default=None,
         help="held-out named pybullet_data objects to evaluate (0 = none; default 5, 3 with "
         "--quick, 10 with --full)",
+    )
+    p.add_argument(
+        "--overhead",
+        type=integer_at_least(0),
+        default=None,
+        metavar="N",
+        help="tabletop test sequences searched for overhead views (elevation ≥ 75°) for the "
+        "share of the completion below the table (0 = none; default 40, 2 with --quick, 200 "
+        "with --full)",
+    )
+    p.add_argument(
+        "--benchmark",
+        type=integer_at_least(0),
+        nargs="?",
+        const=100,
+        default=None,
+        metavar="N",
+        help="objects of the grasp-success benchmark (objects on a table, grasped from 1 or 4 "
+        "views, lift-tested; 0 = none; default 30, 1 with --quick; --benchmark alone: 100)",
+    )
+    p.add_argument(
+        "--benchmark-candidates",
+        type=integer_at_least(1),
+        default=64,
+        metavar="N",
+        help="planner candidates of the benchmark's grasps (default 64, the service's)",
+    )
+    p.add_argument(
+        "--no-sensor",
+        action="store_true",
+        help="skip the table of the paper's five conditions seen through the sensor model",
     )
     p.add_argument(
         "--candidates",
@@ -206,6 +237,10 @@ def settings_from_args(args: argparse.Namespace, parser: argparse.ArgumentParser
         if args.physics_count is not None
         else preset.physics_count,
         named=args.named if args.named is not None else preset.named,
+        overhead=args.overhead if args.overhead is not None else preset.overhead,
+        sensor=not args.no_sensor,
+        benchmark=args.benchmark if args.benchmark is not None else preset.benchmark,
+        benchmark_candidates=args.benchmark_candidates,
         objects=objects,
         views=args.views,
         seed=args.seed,

@@ -45,7 +45,10 @@ CONDITION_LABELS = {
     "camera_pan": "Camera Pan",
     "slide_behind": "Slide Behind Other",
     "two_object_pan": "Two Object Pan",
+    "tabletop": "Tabletop (ours)",
 }
+#: Column order of our tables: the paper's five, then the product's own tabletop condition.
+TABLE_ORDER: tuple[str, ...] = (*PAPER_ORDER, "tabletop")
 EVAL_SPLITS: tuple[str, ...] = ("train", "test")
 METRICS: tuple[str, ...] = (
     "jaccard",
@@ -85,6 +88,13 @@ OBJECT_TABLE_CONDITION = "camera_pan"
 NAMED_OBJECTS_TABLE = "named"
 FOLDER_TABLE = "objects"
 MAIN_TABLE = "main"
+#: The paper's five conditions seen through the sensor model (test split, Jaccard only).
+SENSOR_TABLE = "sensor"
+#: Tabletop sequences scored on their overhead views only (Jaccard, share below the table).
+OVERHEAD_TABLE = "overhead"
+OVERHEAD_MIN_ELEVATION_DEG = 75.0
+#: The grasp-success benchmark (:mod:`grasp.evaluate.benchmark`): one job per object.
+BENCHMARK_TABLE = "benchmark"
 #: The paper's Tables I–III, (train, test) per condition in PAPER_ORDER; None = N/A there.
 _PAPER_ROWS = {
     "jaccard": {
@@ -136,6 +146,8 @@ class Preset:
     candidates: int
     grasp_count: int  # sequences per (condition, split) that are also grasped
     physics_count: int  # of the grasped ones, how many are also lift-tested in pybullet
+    overhead: int  # tabletop test sequences searched for overhead views (OVERHEAD_TABLE)
+    benchmark: int  # objects of the grasp-success benchmark (BENCHMARK_TABLE)
 
 
 #: Sizes per preset, from measured costs on one core (process time): generating a sequence
@@ -146,15 +158,20 @@ class Preset:
 #: lift-tested sequence. F-score of 12 views × (8 rows + the ceiling) ≈ 2.3 s a sequence.
 PRESETS: dict[str, Preset] = {
     # ≈ 90 core-seconds: a smoke test of the whole chain (about a minute on two cores).
-    "quick": Preset(count=2, named=3, candidates=8, grasp_count=2, physics_count=1),
+    "quick": Preset(count=2, named=3, candidates=8, grasp_count=2, physics_count=1, overhead=2,
+                    benchmark=1),
     # The command with no arguments (timings in the README): 100 sequences (10 per condition
     # and split), all 60 single-object ones grasped with 24 candidates (the planner's 24
     # principal-axis poses), 5 of them per cell lift-tested, and 5 of the named objects (all 10
     # with --full or --named 10): about 9.5 minutes on two cores.
-    "default": Preset(count=10, named=5, candidates=24, grasp_count=10, physics_count=5),
+    # The sensor table (the paper's five through the sensor model, test split, Jaccard only) and
+    # the overhead table (40 tabletop sequences, about a fifth of them overhead) add ≈ 60 s.
+    "default": Preset(count=10, named=5, candidates=24, grasp_count=10, physics_count=5,
+                      overhead=40, benchmark=30),
     # ≈ 4,500 core-seconds (about 40 minutes on two cores; use --workers on a bigger machine):
     # 50 sequences per cell and the planner's full 64 candidates.
-    "full": Preset(count=50, named=10, candidates=64, grasp_count=50, physics_count=10),
+    "full": Preset(count=50, named=10, candidates=64, grasp_count=50, physics_count=10,
+                   overhead=200, benchmark=100),
 }
 
 
@@ -185,6 +202,10 @@ class Settings:
     grasp_count: int = PRESETS["default"].grasp_count
     physics_count: int = PRESETS["default"].physics_count
     named: int = PRESETS["default"].named
+    overhead: int = PRESETS["default"].overhead
+    sensor: bool = True  # the sensor table (SENSOR_TABLE)
+    benchmark: int = PRESETS["default"].benchmark
+    benchmark_candidates: int = 64  # planner candidates of the benchmark's grasps
     objects: tuple[str, ...] = ()  # file: ids of --objects DIR
     views: int = VIEWS
     seed: int = 0
@@ -211,11 +232,15 @@ class Settings:
             "grasp_count",
             "physics_count",
             "named",
+            "overhead",
+            "benchmark",
+            "benchmark_candidates",
             "candidates",
             "samples",
             "workers",
         ):
-            if getattr(self, name) < (1 if name in ("candidates", "samples", "workers") else 0):
+            least = 1 if name in ("candidates", "benchmark_candidates", "samples", "workers") else 0
+            if getattr(self, name) < least:
                 raise ValueError(f"{name} out of range: {getattr(self, name)}")
         if self.views < 2:
             raise ValueError(f"views must be >= 2, got {self.views}")
@@ -233,6 +258,8 @@ class Job:
     grasp: bool = False
     example: bool = False
     physics: bool = False  # also lift-test the grasps in pybullet (grasped jobs only)
+    noise: bool | None = None  # the sensor model (None: the condition's default)
+    light: bool = False  # Jaccard (and the share below the table) only: no F-score, no grasp
 
 
 def config_dict(settings: Settings) -> dict:

@@ -17,8 +17,14 @@ import numpy as np
 from completion import grid as G
 from completion.bullet import quiet_fds
 from completion.objects import object_ids
-from completion.scenes import SINGLE_OBJECT_CONDITIONS, Sequence, object_meshes_in_camera
+from completion.scenes import (
+    PAPER_CONDITIONS,
+    SINGLE_OBJECT_CONDITIONS,
+    Sequence,
+    object_meshes_in_camera,
+)
 from grasp.evaluate.config import (
+    BENCHMARK_TABLE,
     DEFAULT_THRESHOLD,
     EVAL_SPLITS,
     FOLDER_TABLE,
@@ -27,7 +33,9 @@ from grasp.evaluate.config import (
     MEMORY_OFF,
     NAMED_OBJECTS_TABLE,
     OBJECT_TABLE_CONDITION,
+    OVERHEAD_TABLE,
     PRIOR,
+    SENSOR_TABLE,
     TRUE_MESH,
     Job,
     Settings,
@@ -41,6 +49,7 @@ STAGES: tuple[str, ...] = (
     "completion_metrics",
     "grasping",
     "physics",
+    "benchmark",
 )
 
 
@@ -79,7 +88,8 @@ class _StageClock:
 class SequenceResult:
     job: Job
     object_ids: list[str]
-    # row -> metric -> per-view list (jaccard, fscore_1, fscore_2)
+    # row -> metric -> per-view list (jaccard, fscore_1, fscore_2; below_plane where the scene
+    # has a support plane: the share of the predicted voxels whose centre lies below it)
     per_view: dict[str, dict[str, list[float]]]
     # row -> JointError.as_dict() (only for grasped jobs)
     grasps: dict[str, dict] = field(default_factory=dict)
@@ -87,8 +97,11 @@ class SequenceResult:
     example: dict | None = None  # final-view grids for the figures
     # row (and TRUE_MESH) -> lift test summary (only for physics jobs)
     physics: dict[str, dict] = field(default_factory=dict)
-    # fscore_1 / fscore_2 -> per-view F-score of the 40³ target itself (a perfect completion)
+    # fscore_1 / fscore_2 -> per-view F-score of the 40³ target itself (a perfect completion);
+    # below_plane -> the target's share below the support plane (scenes with one)
     ceiling: dict[str, list[float]] = field(default_factory=dict)
+    elevation_deg: list[float] = field(default_factory=list)  # the camera's, per view
+    benchmark: dict[str, dict] = field(default_factory=dict)  # row -> {"held", "reason"}
 
 
 # ------------------------------------------------------------------------------ fusion baseline
@@ -139,6 +152,16 @@ def truth_mesh_in_latest_camera(seq: Sequence):
     if len(ids) != 1:
         raise ValueError(f"the grasp ground truth needs a single-object sequence, got {ids}")
     return object_meshes_in_camera(seq, len(seq) - 1)[0]
+
+
+def below_plane(occupied: np.ndarray, seq: Sequence, view: int) -> float:
+    """The share of ``occupied`` voxels (a 40³ bool grid of view ``view``) whose centre lies
+    below the scene's support plane (``meta["support_plane"]``, world frame); 0 when empty."""
+    n = int(occupied.sum())
+    if n == 0:
+        return 0.0
+    plane = G.plane_in_frame(seq.meta["support_plane"], seq.camera_to_world[view])
+    return int((occupied & G.voxels_below_plane(seq.grid_to_camera[view], plane)).sum()) / n
 
 
 class Evaluator:
@@ -202,10 +225,37 @@ class Evaluator:
                     out[name] = torch.sigmoid(self.models[name](x))[0].numpy()
         return out
 
+    def benchmark_rows(self) -> list[str]:
+        """The grasp-benchmark rows this run's models allow (the true mesh always)."""
+        from grasp.evaluate.benchmark import BENCHMARK_ROWS, ROW_SOURCES
+
+        def runs(source: str | None) -> bool:
+            if source == "fusion":
+                return FUSION in self.settings.rows and "mvp" in self.models
+            return source is None or source in self.models
+
+        return [r for r in BENCHMARK_ROWS if runs(ROW_SOURCES[r][0])]
+
+    def _benchmark(self, job: Job) -> SequenceResult:
+        from grasp.evaluate import benchmark as b
+
+        timings = Timings()
+        clock = _StageClock(timings)
+        object_id = job.pool[0]
+        scene = b.make_scene(object_id, job.index, self.settings.seed, self.renderer)
+        seed = key_seed(self.settings.seed, job.table, job.index)
+        with quiet_fds(1):
+            outcome = b.run_object(scene, self.models, self.thresholds, self.benchmark_rows(),
+                                   candidates=self.settings.benchmark_candidates, seed=seed)
+        clock.charge("benchmark")
+        return SequenceResult(job, [object_id], {}, timings=timings, benchmark=outcome)
+
     def evaluate(self, job: Job) -> SequenceResult:
         from completion.scenes import make_sequence
         from grasp import metrics
 
+        if job.table == BENCHMARK_TABLE:
+            return self._benchmark(job)
         s = self.settings
         timings = Timings()
         clock = _StageClock(timings)
@@ -216,6 +266,7 @@ class Evaluator:
             s.seed,
             views=s.views,
             pool=list(job.pool) if job.pool is not None else None,
+            noise=job.noise,
             renderer=self.renderer,
         )
         clock.charge("generation")
@@ -224,7 +275,18 @@ class Evaluator:
         thresholds = {row: self.threshold(row, job.condition) for row in s.rows}
         per_view = {row: {"jaccard": [], "fscore_1": [], "fscore_2": []} for row in s.rows}
         ceiling: dict[str, list[float]] = {"fscore_1": [], "fscore_2": []}
+        plane = "support_plane" in seq.meta
         for v in range(len(seq)):
+            for row in s.rows:
+                occupied = probs[row][v] >= thresholds[row]
+                per_view[row]["jaccard"].append(metrics.jaccard(occupied, seq.targets[v]))
+                if plane:
+                    per_view[row].setdefault("below_plane", []).append(
+                        below_plane(occupied, seq, v))
+            if plane:  # the target's own share: voxels the surface cuts, centres just below
+                ceiling.setdefault("below_plane", []).append(below_plane(seq.targets[v], seq, v))
+            if job.light:
+                continue
             seed = key_seed(s.seed, job.table, job.condition, job.split, job.index, v)
             transform = seq.grid_to_camera[v]
             truth = metrics.truth_surface_sample(
@@ -239,13 +301,12 @@ class Evaluator:
             for row in s.rows:
                 p, thr = probs[row][v], thresholds[row]
                 scores = metrics.fscore_grids(p, truth, transform, threshold=thr, seed=seed + 1)
-                per_view[row]["jaccard"].append(metrics.jaccard(p >= thr, seq.targets[v]))
                 per_view[row]["fscore_1"].append(scores[0].fscore)
                 per_view[row]["fscore_2"].append(scores[1].fscore)
         clock.charge("completion_metrics")
         grasps: dict[str, dict] = {}
         physics: dict[str, dict] = {}
-        if job.grasp and job.condition in SINGLE_OBJECT_CONDITIONS:
+        if job.grasp and not job.light and job.condition in SINGLE_OBJECT_CONDITIONS:
             from grasp.sim import CollisionScene
 
             truth_mesh = truth_mesh_in_latest_camera(seq)
@@ -280,7 +341,8 @@ class Evaluator:
                 "thresholds": thresholds,
             }
         return SequenceResult(
-            job, list(seq.meta["object_ids"]), per_view, grasps, timings, example, physics, ceiling
+            job, list(seq.meta["object_ids"]), per_view, grasps, timings, example, physics, ceiling,
+            elevation_deg=list(seq.meta["elevation_deg"]),
         )
 
     def _lift_tests(self, job: Job, truth, truth_scene, planned: dict, plan_seed: int) -> dict:
@@ -348,6 +410,18 @@ def make_jobs(settings: Settings) -> list[Job]:
                         physics=index < min(settings.grasp_count, settings.physics_count),
                     )
                 )
+    if settings.sensor:  # the paper's five through the sensor model
+        for condition in (c for c in settings.conditions if c in PAPER_CONDITIONS):
+            for index in range(settings.count):
+                jobs.append(Job(SENSOR_TABLE, condition, "test", index, noise=True, light=True))
+    if "tabletop" in settings.conditions:  # searched for overhead views
+        for index in range(settings.overhead):
+            jobs.append(Job(OVERHEAD_TABLE, "tabletop", "test", index, light=True))
+    if settings.benchmark:
+        from grasp.evaluate.benchmark import benchmark_objects
+
+        for index, object_id in enumerate(benchmark_objects(settings.benchmark, settings.seed)):
+            jobs.append(Job(BENCHMARK_TABLE, "tabletop", "test", index, pool=(object_id,)))
     named = object_ids("test", sources=("named",))[: settings.named]
     folder = [(NAMED_OBJECTS_TABLE, object_id) for object_id in named]
     folder += [(FOLDER_TABLE, object_id) for object_id in settings.objects]

@@ -1,0 +1,194 @@
+"""The grasp-success benchmark: objects resting on a table, grasped from what the views show.
+
+Each object (held-out: the named pybullet_data objects, one in ten, and test-split objects) rests
+on a table (the world plane z = 0) in one of its stable poses (:func:`completion.scenes.
+stable_pose`). A depth camera 0.45–0.8 m away, at 45–90° of elevation, pans 30° a view over 4
+views; every view goes through the sensor model and, as the service receives it, into a
+:class:`completion.stream.CompletionStream` with the table as its support plane (the completion
+is cut at it). Rows, each the top-1 grasp planned with the table as an obstacle and executed by
+the lift test on the *true* object standing on the table (guarded approach, close, lift 10 cm,
+shake; :func:`grasp.physics.lift_test`):
+
+- ``true_mesh``: planned on the true mesh itself (what a perfect completion would get);
+- ``mvp_1view`` / ``mvp_4views``: MVP's completion of the first view / of the 4-view pan;
+- ``single_view_1view``: Single-View's completion of the first view;
+- ``registered_fusion_4views``: the 4 views' observed points merged with the known camera poses,
+  voxelized in the last view's grid (no learning).
+
+results.json's ``grasp_benchmark[row] = {"held", "tested", "ci95": [lo, hi], "reasons"}``: held out
+of tested with the Wilson score interval, and how often each failure reason occurred.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import zlib
+from dataclasses import dataclass
+
+import numpy as np
+import trimesh
+
+from completion import grid as G
+from completion.objects import load_object, object_ids
+
+BENCHMARK_ROWS: tuple[str, ...] = (
+    "true_mesh",
+    "mvp_1view",
+    "mvp_4views",
+    "single_view_1view",
+    "registered_fusion_4views",
+)
+#: row -> (what completes the views: a model name, "fusion" or None for the truth, views used)
+ROW_SOURCES = {
+    "true_mesh": (None, 0),
+    "mvp_1view": ("mvp", 1),
+    "mvp_4views": ("mvp", 4),
+    "single_view_1view": ("single_view", 1),
+    "registered_fusion_4views": ("fusion", 4),
+}
+VIEWS = 4
+TABLE = np.array([0.0, 0.0, 1.0, 0.0])  # the world plane z = 0, n up
+
+
+def benchmark_objects(count: int, seed: int) -> list[str]:
+    """``count`` distinct held-out objects: every tenth a named pybullet_data object (while they
+    last), the rest the test split's objects in an order drawn from ``seed``."""
+    named = object_ids("test", sources=("named",))
+    pool = object_ids("test")
+    order = np.random.default_rng([seed, zlib.crc32(b"benchmark")]).permutation(len(pool))
+    others = iter(pool[i] for i in order)
+    return [named[k // 10] if k % 10 == 0 and k // 10 < len(named) else next(others)
+            for k in range(count)]
+
+
+@dataclass
+class Scene:
+    """One benchmark object on its table and what the camera saw of it."""
+
+    object_id: str
+    mesh: trimesh.Trimesh  # the true object, world frame, resting on z = 0
+    depth: np.ndarray  # (VIEWS, H, W) float32 metres, with the sensor model
+    mask: np.ndarray  # (VIEWS, H, W) bool, the object's pixels (the table excluded)
+    cameras: np.ndarray  # (VIEWS, 4, 4) camera→world
+    intrinsics: G.Intrinsics
+
+
+def make_scene(object_id: str, index: int, seed: int, renderer) -> Scene:
+    """Place ``object_id`` on the table and render the pan; deterministic in its arguments."""
+    from completion.render import SensorModel, look_at
+    from completion.scenes import stable_pose, table_mesh
+
+    rng = np.random.default_rng([seed, zlib.crc32(b"benchmark/scene"), index])
+    mesh = load_object(object_id)
+    pose, _ = stable_pose(mesh, object_id, rng)
+    world = mesh.copy().apply_transform(pose)
+    lo, hi = world.bounds
+    target = (lo + hi) / 2
+    distance, elevation = rng.uniform(0.45, 0.8), np.radians(rng.uniform(45.0, 90.0))
+    azimuth = rng.uniform(0, 2 * np.pi) + np.radians(30.0) * np.arange(VIEWS)
+    renderer.clear()
+    renderer.add_mesh(world)
+    renderer.add_mesh(table_mesh())
+    sensor, noise = SensorModel(), np.random.default_rng([seed, zlib.crc32(b"benchmark/noise"),
+                                                          index])
+    depths, masks, cameras = [], [], []
+    for a in azimuth:
+        eye = target + distance * np.array([np.cos(a) * np.cos(elevation),
+                                            np.sin(a) * np.cos(elevation), np.sin(elevation)])
+        camera = look_at(eye, target)
+        depth, index_image = renderer.render(camera)
+        depths.append(sensor.apply(depth, noise))
+        masks.append(index_image == 0)
+        cameras.append(camera)
+    renderer.clear()
+    return Scene(object_id, world, np.stack(depths), np.stack(masks), np.stack(cameras),
+                 renderer.intrinsics)
+
+
+def completion_mesh(scene: Scene, source: str, views: int, models: dict, thresholds: dict):
+    """The mesh a row plans on (camera frame of its last view) and that camera's pose; the mesh
+    is None when the completion is empty."""
+    from completion.mesh import EmptyMeshError, grid_to_mesh
+    from completion.stream import CompletionStream
+
+    stream = CompletionStream(models["mvp" if source == "fusion" else source],
+                              threshold=thresholds.get(source))
+    seen = []
+    for t in range(views):
+        stream.add_view(depth=scene.depth[t], intrinsics=scene.intrinsics, mask=scene.mask[t],
+                        camera_to_world=scene.cameras[t], support_plane=TABLE)
+        points = G.depth_to_points(scene.depth[t], scene.intrinsics, scene.mask[t])
+        seen.append(G.transform_points(points, scene.cameras[t]))
+    camera = scene.cameras[views - 1]
+    if not stream.seen:
+        return None, camera
+    c = stream.completion()  # cut at the table
+    probabilities, threshold = c.probabilities, c.threshold
+    if source == "fusion":  # every point seen so far, in the last view's grid, cut the same way
+        merged = G.transform_points(np.concatenate(seen), np.linalg.inv(camera))
+        occupied = G.voxelize_points(merged, c.grid_to_camera)
+        occupied &= ~G.voxels_below_plane(c.grid_to_camera, G.plane_in_frame(TABLE, camera))
+        probabilities, threshold = occupied.astype(np.float32), 0.5
+    try:
+        return grid_to_mesh(probabilities, c.grid_to_camera, threshold=threshold), camera
+    except EmptyMeshError:
+        return None, camera
+
+
+def run_object(scene: Scene, models: dict, thresholds: dict, rows, *, candidates: int,
+               seed: int) -> dict[str, dict]:
+    """row -> {"held": bool, "reason": str} for one object."""
+    from grasp.physics import lift_test
+    from grasp.planner import SupportPlane, plan
+
+    table = SupportPlane(TABLE[:3], float(TABLE[3]))
+    out = {}
+    for row in rows:
+        source, views = ROW_SOURCES[row]
+        if source is None:
+            mesh, camera = scene.mesh, np.eye(4)
+        else:
+            mesh, camera = completion_mesh(scene, source, views, models, thresholds)
+        if mesh is None:
+            out[row] = {"held": False, "reason": "empty completion"}
+            continue
+        grasps = plan(mesh, n_candidates=candidates, seed=seed, top_k=1,
+                      support_plane=table.transformed(camera))
+        if not grasps or not grasps[0].success:
+            out[row] = {"held": False, "reason": "no grasp planned"}
+            continue
+        world = dataclasses.replace(grasps[0], palm_pose=camera @ grasps[0].palm_pose)
+        result = lift_test(scene.mesh, world, seed=seed, table=True, approach="contact")
+        out[row] = {"held": bool(result.success), "reason": result.reason}
+    return out
+
+
+def wilson(held: int, tested: int, z: float = 1.96) -> list[float]:
+    """The Wilson score interval of a success rate (95 % for z = 1.96); [0, 1] for no trials."""
+    if tested == 0:
+        return [0.0, 1.0]
+    p = held / tested
+    centre = (p + z * z / (2 * tested)) / (1 + z * z / tested)
+    half = z * np.sqrt(p * (1 - p) / tested + z * z / (4 * tested**2)) / (1 + z * z / tested)
+    return [round(float(max(0.0, centre - half)), 4), round(float(min(1.0, centre + half)), 4)]
+
+
+def summarise(records: list[dict[str, dict]], rows) -> dict:
+    """results.json's ``grasp_benchmark`` from one record per object."""
+    out = {}
+    for row in rows:
+        outcomes = [r[row] for r in records if row in r]
+        held = sum(o["held"] for o in outcomes)
+        reasons: dict[str, int] = {}
+        for o in outcomes:
+            if not o["held"]:
+                key = _reason_kind(o["reason"])
+                reasons[key] = reasons.get(key, 0) + 1
+        out[row] = {"held": held, "tested": len(outcomes), "ci95": wilson(held, len(outcomes)),
+                    "reasons": dict(sorted(reasons.items(), key=lambda kv: -kv[1]))}
+    return out
+
+
+def _reason_kind(reason: str) -> str:
+    """A lift test's reason without its numbers, so that alike failures count together."""
+    return reason.split(",")[0] if reason.startswith("the object left the hand") else reason
