@@ -150,7 +150,8 @@ class GraspClient:
     def session(self, support_plane: Sequence[float] | None = None) -> Session:
         """A new session (created on the service by its first view). ``support_plane``: the
         table the object rests on, (nx, ny, nz, d) in the world frame (n·x + d = 0, n up); it
-        needs views with ``camera_pose`` and is sent with every grasp request."""
+        needs views with ``camera_pose``, is sent with the first view and kept by the session
+        (the completion is cut at it, grasps treat it as an obstacle)."""
         session = Session(self, _plane(support_plane))
         self._open.append(session)
         return session
@@ -205,7 +206,7 @@ class Session:
     """One object's views and grasps; use :meth:`GraspClient.session`. As a context manager it
     deletes itself on exit."""
 
-    def __init__(self, client: GraspClient, support_plane: str | None) -> None:
+    def __init__(self, client: GraspClient, support_plane: list[float] | None) -> None:
         self.client = client
         self.support_plane = support_plane
         self.id: str | None = None
@@ -215,9 +216,8 @@ class Session:
     def inspector_url(self) -> str:
         """The 3-D page of this session (with the token in the fragment, never sent to a log)."""
         self._need_id()
-        query = f"?support_plane={self.support_plane}" if self.support_plane else ""
         token = f"#token={self.client.token}" if self.client.token else ""
-        return f"{self.client.url}/sessions/{self.id}/view{query}{token}"
+        return f"{self.client.url}/sessions/{self.id}/view{token}"
 
     def add_view(self, depth: np.ndarray, K: Any, *, mask: np.ndarray | None = None,
                  camera_pose: np.ndarray | None = None, encoding: str | None = None) -> dict:
@@ -252,8 +252,6 @@ class Session:
         params: dict[str, Any] = {"session_id": self.id, "top_k": int(top_k)}
         if n_candidates is not None:
             params["n_candidates"] = int(n_candidates)
-        if self.support_plane:
-            params["support_plane"] = self.support_plane
         out = self.client.request("GET", "/grasp", params=params).json()
         self.last_reason = out.get("reason")
         return [Grasp.from_json(g) for g in out["grasps"]]
@@ -268,7 +266,8 @@ class Session:
         return trimesh.load(io.BytesIO(data), file_type="ply", force="mesh")
 
     def info(self) -> dict:
-        """``GET /sessions/{id}``: views, whether the object was seen, expiry."""
+        """``GET /sessions/{id}``: views, whether the object was seen, expiry, the support
+        plane it keeps."""
         self._need_id()
         return self.client.request("GET", f"/sessions/{self.id}").json()
 
@@ -290,6 +289,8 @@ class Session:
             body["camera_pose"] = pose.tolist()
         if self.id is not None:
             body["session_id"] = self.id
+        elif self.support_plane is not None:  # the session keeps it from its first view
+            body["support_plane"] = self.support_plane
         out = self.client.request("POST", "/views", json=body).json()
         self.id = out["session_id"]
         return out
@@ -347,14 +348,14 @@ def _intrinsics(K: Any) -> dict:
     return {"fx": fx, "fy": fy, "cx": cx, "cy": cy}
 
 
-def _plane(plane: Sequence[float] | None) -> str | None:
+def _plane(plane: Sequence[float] | None) -> list[float] | None:
     if plane is None:
         return None
     p = np.asarray(plane, dtype=np.float64)
     if p.shape != (4,) or not np.isfinite(p).all() or not np.linalg.norm(p[:3]) > 0:
         raise ValueError(f"support_plane must be four finite numbers (nx, ny, nz, d) with a "
                          f"non-zero normal, got {plane!r}")
-    return ",".join(repr(float(v)) for v in p)
+    return [float(v) for v in p]
 
 
 def _retry_after(response: httpx.Response) -> float | None:

@@ -76,6 +76,20 @@ def test_a_scene_through_the_client_gives_the_grasp_of_the_raw_calls(server, sce
     assert gone.status_code == 404  # the client deleted its session on exit
 
 
+def test_a_session_on_a_table_keeps_its_plane_and_cuts_the_completion_there(server, scene):
+    camera = scene.camera_to_world[0]  # the object floats about the world's origin
+    with GraspClient(server.url, token="secret") as client:
+        with client.session(support_plane=(0, 0, 2, 0)) as session:  # z = 0: its middle
+            session.add_view(scene.depth[0], scene.meta["intrinsics"], mask=scene.mask[0] >= 0,
+                             camera_pose=camera)
+            np.testing.assert_allclose(session.info()["support_plane"], [0, 0, 1, 0])
+            world = session.mesh().apply_transform(camera)  # nothing below the table
+            assert world.vertices[:, 2].min() > -0.01 and world.vertices[:, 2].max() > 0.02
+        with client.session(support_plane=(0, 0, 1, 0)) as session:
+            with pytest.raises(InvalidRequest, match="camera_pose"):  # a plane needs poses
+                session.add_view(scene.depth[0], scene.meta["intrinsics"])
+
+
 def test_millimetres_and_metres_give_the_same_stored_view(server, scene):
     depth_mm = _mm(scene.depth[0])
     K = tuple(scene.meta["intrinsics"][k] for k in ("fx", "fy", "cx", "cy"))
