@@ -5,7 +5,7 @@ Semantics (hands/barrett/README.md, DESIGN.md §7):
 1. The spread is set first and never moved.
 2. Approach (optional): while the open hand overlaps the object, back off along the palm's −z in
    ``approach_step`` steps; then translate along +z in ``approach_step`` steps until the hand
-   touches the object, bisecting the last step to 0.01 mm, or until ``max_travel``.
+   touches the object (or the table), bisecting the last step to 0.01 mm, or until ``max_travel``.
 3. Close: every finger DOF rises toward its maximum in ``close_step_deg`` steps (GraspIt!: 0.01
    rad), with J2 = DOF and J3 = DOF/3. After each step the moving links are checked; on a
    collision the step is bisected back to contact (to 1e-4 rad, i.e. under 0.02 mm at the
@@ -13,6 +13,11 @@ Semantics (hands/barrett/README.md, DESIGN.md §7):
    are the ones in contact. A distal contact stops the finger. A proximal contact stops J2 only
    (breakaway): the DOF keeps rising and J3 keeps following it until the distal link touches or
    the DOF reaches its maximum. Closing ends when no finger can move.
+
+With a support plane (``support_plane=``, or a scene built with one) the table is an obstacle
+as in GraspIt!: the approach stops at the object or the table, and a link that touches the table
+stops like one that touches the object (the same rules, breakaway included), so no link goes
+below it. Table contacts are not grasp contacts: ``contacts`` and the quality are the object's.
 
 The fingers do not touch each other in this model (finger–finger and finger–palm collisions are
 not checked; at spread 0 fingers 1/2 pass beside finger 3), so each finger's motion depends only
@@ -49,7 +54,7 @@ import numpy as np
 import trimesh
 
 from grasp.quality import EPSILON_NO_CLOSURE, MU_RUBBER, contacts_quality
-from grasp.sim import CollisionScene, Contact, check_pose
+from grasp.sim import CollisionScene, Contact, SupportPlane, check_pose
 from hands.barrett import FINGERS, JOINT_NAMES
 from hands.barrett.kinematics import rotation_about
 
@@ -188,11 +193,13 @@ def pregrasp_pose(palm_pose: np.ndarray, backoff: float = PREGRASP_BACKOFF_M) ->
     return _shift(check_pose(palm_pose), -float(backoff))
 
 
-def _scene_of(mesh: trimesh.Trimesh | CollisionScene) -> CollisionScene:
+def _scene_of(
+    mesh: trimesh.Trimesh | CollisionScene, support_plane: SupportPlane | None = None
+) -> CollisionScene:
     if isinstance(mesh, CollisionScene):
-        return mesh
+        return mesh if support_plane is None else mesh.with_support_plane(support_plane)
     if isinstance(mesh, trimesh.Trimesh):
-        return CollisionScene(mesh)
+        return CollisionScene(mesh, support_plane=support_plane)
     raise ValueError(f"mesh must be a trimesh.Trimesh or a CollisionScene, got {type(mesh)}")
 
 
@@ -349,6 +356,7 @@ def autograsp(
     close_step_deg: float = DEFAULT_CLOSE_STEP_DEG,
     mu: float = MU_RUBBER,
     quality: bool = True,
+    support_plane: SupportPlane | None = None,
 ) -> GraspResult:
     """Approach the object along the palm's +z and close the BarrettHand on it (GraspIt! rules).
 
@@ -372,12 +380,15 @@ def autograsp(
     quality : bool
         Compute epsilon and volume (the 6-D hull is about half the cost of a grasp). Without it
         they are NaN and ``success`` is False; :func:`with_quality` adds them later.
+    support_plane : SupportPlane or None
+        The table (world frame): an obstacle for the approach and the fingers. Default: the
+        scene's own (none for a mesh).
 
     Returns
     -------
     GraspResult
     """
-    scene = _scene_of(mesh)
+    scene = _scene_of(mesh, support_plane)
     palm = check_pose(palm_pose)
     params = scene.kinematics.params
     if not 0.0 <= spread_deg <= params.spread_max_deg:

@@ -22,13 +22,15 @@ Speed: a distance-field screen (:mod:`grasp.screen`) predicts the approach of ev
 at once, and only the most promising (:data:`EXACT_CANDIDATES` a round) get the exact fcl
 autograsp; ``exact=None`` autograsps all of them.
 
-A support plane (``support_plane=SupportPlane(...)``, world frame, n·x + d = 0 with n pointing up,
-the object on its upper side) removes the candidates that approach from below it and every grasp
-whose hand (any link's collision box) reaches below it.
+A support plane (``support_plane=SupportPlane(...)``, n·x + d = 0 in the mesh's frame, n up, the
+object on its upper side) is the table, an obstacle to the hand as in GraspIt!
+(:mod:`grasp.autograsp`): no link goes below it. Its candidates (:func:`table_candidates`) start
+with top-down and, for a low object, fingertip grasps; none approaches from below.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
 from collections.abc import Sequence
@@ -39,7 +41,8 @@ import trimesh
 
 from completion.grid import transform_points
 from grasp.autograsp import GraspResult, autograsp, with_quality
-from grasp.sim import CollisionScene, check_mesh, fibonacci_directions
+from grasp.screen import Screen, finger_reach, open_hand_lowest
+from grasp.sim import CollisionScene, SupportPlane, check_mesh, fibonacci_directions
 from hands.barrett import JOINT_NAMES, HandKinematics
 
 #: Spreads (degrees) the random candidates draw from: parallel fingers, tripod, T, and between.
@@ -57,49 +60,13 @@ DISTINCT_DEG = 10.0
 EXACT_CANDIDATES = 4
 #: Spacing of the hand's points in the planner's screen (metres): 430 points on the hand.
 SCREEN_SPACING_M = 0.02
-
-
-@dataclass(frozen=True)
-class SupportPlane:
-    """The surface the object rests on: points x with n·x + d = 0, n (unit) pointing up."""
-
-    normal: np.ndarray
-    offset: float
-
-    def __post_init__(self) -> None:
-        n = np.asarray(self.normal, dtype=np.float64).reshape(-1)
-        if n.shape != (3,) or not np.isfinite(n).all():
-            raise ValueError(f"a support plane's normal must be 3 finite numbers, got {n}")
-        if not np.isfinite(self.offset):
-            raise ValueError(f"a support plane's offset d must be finite, got {self.offset}")
-        norm = float(np.linalg.norm(n))
-        if not 1e-9 <= norm < np.inf:
-            raise ValueError(f"the support plane's normal must have a length of at least 1e-9 "
-                             f"(and not be zero), got {n.tolist()}")
-        object.__setattr__(self, "normal", n / norm)
-        object.__setattr__(self, "offset", float(self.offset) / norm)
-
-    @classmethod
-    def parse(cls, text: str) -> SupportPlane:
-        """From "nx,ny,nz,d" (the query and CLI form)."""
-        try:
-            values = [float(v) for v in text.split(",")]
-        except ValueError:
-            values = []
-        if len(values) != 4:
-            raise ValueError(f"a support plane is four numbers nx,ny,nz,d; got {text!r}")
-        return cls(np.array(values[:3]), values[3])
-
-    def height(self, points: np.ndarray) -> np.ndarray:
-        """Signed distance of (n, 3) points above the plane (metres)."""
-        return np.asarray(points, dtype=np.float64) @ self.normal + self.offset
-
-    def transformed(self, pose: np.ndarray) -> SupportPlane:
-        """The same plane in the frame whose pose (frame→here) is ``pose``."""
-        pose = np.asarray(pose, dtype=np.float64)
-        normal = pose[:3, :3].T @ self.normal
-        return SupportPlane(normal, self.offset + float(self.normal @ pose[:3, 3]))
-
+#: A grasp whose hand reaches further below the table is dropped (only rounding can put it there).
+TABLE_TOL_M = 1e-6
+#: Open hands start at least this far above the table (metres).
+TABLE_CLEARANCE_M = 0.002
+#: Fingertip grasps stop the palm this far above the closing fingers' deepest reach (metres), so
+#: that the tips sweep just over the table.
+PINCH_CLEARANCE_M = 0.004
 
 _KINEMATICS = HandKinematics()
 
@@ -122,16 +89,31 @@ def hand_primitives(grasp: GraspResult) -> list[tuple[str, str, tuple[float, ...
 
 
 def hand_points(grasp: GraspResult) -> np.ndarray:
-    """(n, 3) corners of every collision primitive's box of the hand in ``grasp`` (world)."""
-    links = _link_poses(grasp)
-    return np.concatenate(
-        [transform_points(prim.corners(), links[prim.link]) for prim in _KINEMATICS.primitives]
+    """(n, 3) points on the hand's collision primitives in ``grasp`` (world): every box's
+    corners and 64 points around each rim of every cylinder."""
+    angles = np.linspace(0.0, 2.0 * np.pi, 64, endpoint=False)
+    out = []
+    for _, kind, size, pose in hand_primitives(grasp):
+        if kind == "box":
+            local = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)])
+            local = 0.5 * local * np.asarray(size)
+        else:
+            rim = np.c_[size[0] * np.cos(angles), size[0] * np.sin(angles), np.zeros(64)]
+            local = np.concatenate([rim + [0.0, 0.0, z] for z in (-size[1] / 2, size[1] / 2)])
+        out.append(transform_points(local, pose))
+    return np.concatenate(out)
+
+
+def hand_clearance(plane: SupportPlane, grasp: GraspResult) -> float:
+    """Height (m) of the hand's lowest point above ``plane`` in ``grasp`` (negative: below)."""
+    return float(
+        min(plane.lowest(kind, size, pose) for _, kind, size, pose in hand_primitives(grasp))
     )
 
 
-def crosses(plane: SupportPlane, grasp: GraspResult) -> bool:
-    """Whether any part of the hand reaches below the support plane."""
-    return bool(plane.height(hand_points(grasp)).min() < 0.0)
+def crosses(plane: SupportPlane, grasp: GraspResult, *, tol: float = TABLE_TOL_M) -> bool:
+    """Whether any part of the hand reaches more than ``tol`` below the support plane."""
+    return hand_clearance(plane, grasp) < -tol
 
 
 def distinct(grasps: Sequence[GraspResult], k: int | None = None) -> list[GraspResult]:
@@ -161,7 +143,8 @@ class Candidate:
 
     palm_pose: np.ndarray
     spread_deg: float
-    source: str  # "principal" or "sphere"
+    source: str  # "principal", "sphere", or with a support plane "top" or "pinch"
+    travel: float | None = None  # longest approach (metres); None: the planner's
 
 
 def principal_axes(mesh: trimesh.Trimesh) -> np.ndarray:
@@ -251,6 +234,83 @@ def _random_rotation(rng: np.random.Generator) -> np.ndarray:
     )
 
 
+def table_candidates(
+    mesh: trimesh.Trimesh,
+    plane: SupportPlane,
+    *,
+    n_candidates: int = 64,
+    seed: int | np.random.Generator = 0,
+    spreads_deg: Sequence[float] = DEFAULT_SPREADS_DEG,
+    standoff: float = STANDOFF_M,
+    travel: float = 0.2,
+) -> list[Candidate]:
+    """``n_candidates`` pre-grasp poses around ``mesh`` resting on ``plane``: top-down ones
+    (palm +z against the normal, fingers across each axis of the footprint, spreads 0° and 60°);
+    for an object lower than the fingers' reach, fingertip ones (the same, the approach ending
+    where the closing tips sweep just over the table); then :func:`candidate_poses`'s that do
+    not approach from below. Every open hand starts clear of the table (:func:`_clear_of_table`;
+    ``travel``: the others' approach, metres)."""
+    check_mesh(mesh)
+    if n_candidates < 1:
+        raise ValueError(f"n_candidates must be >= 1, got {n_candidates}")
+    center = np.asarray(mesh.bounds.mean(axis=0))
+    distance = float(np.linalg.norm(mesh.vertices - center, axis=1).max()) + standoff
+    axes = _footprint_axes(mesh, plane)[::-1]  # across the narrow side first
+    tops = [(_palm_pose(-plane.normal, a, center, distance), s) for a in axes for s in (0.0, 60.0)]
+    out = [Candidate(pose, spread, "top") for pose, spread in tops]
+    pinch = finger_reach() + PINCH_CLEARANCE_M  # palm face height of a fingertip grasp
+    if plane.height(mesh.vertices).max() < pinch:
+        for pose, spread in tops:
+            above, start = float(plane.height(pose[:3, 3])), pose.copy()
+            start[:3, 3] += max(pinch - above, 0.0) * plane.normal
+            out.append(Candidate(start, spread, "pinch", max(above - pinch, 0.0)))
+    pool = candidate_poses(mesh, n_candidates=2 * n_candidates + 24, seed=seed,
+                           spreads_deg=spreads_deg, standoff=standoff)
+    out += [c for c in pool if c.palm_pose[:3, 2] @ plane.normal <= 1e-9]
+    unique: dict[tuple, Candidate] = {}  # a top-down candidate may also be a principal one
+    for c in out:
+        unique.setdefault((c.spread_deg, (np.round(c.palm_pose, 9) + 0.0).tobytes()), c)
+    return _clear_of_table(list(unique.values())[:n_candidates], plane, travel)
+
+
+def _footprint_axes(mesh: trimesh.Trimesh, plane: SupportPlane) -> np.ndarray:
+    """(2, 3) unit vectors in ``plane``: the object's footprint's long axis, then the short one
+    (area-weighted PCA of the faces projected on the plane; largest component positive)."""
+    n = plane.normal
+    e1 = _palm_pose(n, np.zeros(3), np.zeros(3), 0.0)[:3, 0]  # any unit vector in the plane
+    basis = np.stack([e1, np.cross(n, e1)])  # (2, 3)
+    weights = mesh.area_faces / max(mesh.area, 1e-300)
+    centroids = mesh.triangles_center
+    flat = (centroids - weights @ centroids) @ basis.T  # (f, 2)
+    _, vectors = np.linalg.eigh((flat * weights[:, None]).T @ flat)
+    long = vectors[:, 1] @ basis
+    long *= np.sign(long[np.argmax(np.abs(long))])
+    return np.stack([long, np.cross(n, long)])
+
+
+def _clear_of_table(
+    candidates: Sequence[Candidate], plane: SupportPlane, travel: float
+) -> list[Candidate]:
+    """The candidates, each open hand less than :data:`TABLE_CLEARANCE_M` above ``plane`` moved
+    back along its approach (if it descends at least 30°) or up the normal."""
+    palms = np.stack([c.palm_pose for c in candidates])
+    lowest = open_hand_lowest(plane, palms, np.array([c.spread_deg for c in candidates]))
+    out = []
+    for c, low in zip(candidates, lowest, strict=True):
+        need = TABLE_CLEARANCE_M - float(low)
+        pose, limit = c.palm_pose.copy(), travel if c.travel is None else c.travel
+        descent = -float(pose[:3, 2] @ plane.normal)
+        if need <= 0.0:
+            out.append(c)
+        elif descent >= 0.5:  # keep the approach line: start further back
+            pose[:3, 3] -= need / descent * pose[:3, 2]
+            out.append(dataclasses.replace(c, palm_pose=pose, travel=limit + need / descent))
+        else:
+            pose[:3, 3] += need * plane.normal
+            out.append(dataclasses.replace(c, palm_pose=pose, travel=limit))
+    return out
+
+
 def too_large(mesh: trimesh.Trimesh) -> str | None:
     """Why the hand cannot grasp ``mesh`` at all (None when it may)."""
     diagonal = float(np.linalg.norm(mesh.extents))
@@ -294,12 +354,12 @@ def plan(
     """Plan BarrettHand grasps on ``mesh``: the best ``top_k`` distinct grasps of
     ``n_candidates`` candidates.
 
-    Stages: the candidates (:func:`candidate_poses`); a screen that predicts, for every
-    candidate at once, where its approach stops and whether the palm is what touches
-    (:meth:`grasp.screen.Screen.predict`, a distance field of the mesh); the exact autograsp
-    (approach, close, contacts) of the most promising ``exact`` candidates by that prediction,
-    then of the next ``exact`` while fewer than ``top_k`` distinct force-closure grasps were
-    found; the ranking (:func:`rank`) of those.
+    Stages: the candidates (:func:`candidate_poses`, :func:`table_candidates`); a screen that
+    predicts, for every candidate at once, where its approach stops and whether the palm is
+    what touches (:meth:`grasp.screen.Screen.predict`, a distance field of the mesh); the exact
+    autograsp (approach, close, contacts) of the most promising ``exact`` candidates by that
+    prediction, then of the next ``exact`` while fewer than ``top_k`` distinct force-closure
+    grasps were found; the ranking (:func:`rank`) of those.
 
     Parameters
     ----------
@@ -317,9 +377,8 @@ def plan(
     max_travel : float or None
         Longest approach; default: through the whole bounding sphere.
     support_plane : SupportPlane or None
-        In the mesh's frame. Candidates approaching from below it are not generated (the
-        ``n_candidates`` are drawn from the others) and grasps whose hand reaches below it are
-        dropped.
+        The table, in the mesh's frame (default: the scene's): an obstacle to the hand; the
+        candidates are then :func:`table_candidates` (none from below).
     exact : int or None
         Candidates autograsped exactly per round, most promising first (None: all of them, no
         screen: the complete ranking, for diagnostics).
@@ -350,18 +409,15 @@ def plan(
     problem = too_large(scene.mesh)
     if problem is not None:
         raise ValueError(problem)
-    if support_plane is None:
-        candidates = candidate_poses(
-            scene.mesh, n_candidates=n_candidates, seed=seed, spreads_deg=spreads_deg
-        )
-    else:  # draw more, keep the first n_candidates that do not come from below
-        pool = candidate_poses(
-            scene.mesh, n_candidates=2 * n_candidates + 24, seed=seed, spreads_deg=spreads_deg
-        )
-        candidates = [c for c in pool if c.palm_pose[:3, 2] @ support_plane.normal <= 1e-9]
-        candidates = candidates[:n_candidates]
     radius = float(np.linalg.norm(scene.mesh.extents))  # bounding-box diagonal
     travel = radius + 2.0 * STANDOFF_M if max_travel is None else max_travel
+    support_plane = scene.support_plane if support_plane is None else support_plane
+    scene = scene.with_support_plane(support_plane)  # the table: an obstacle to the hand
+    options = {"n_candidates": n_candidates, "seed": seed, "spreads_deg": spreads_deg}
+    if support_plane is None:
+        candidates = candidate_poses(scene.mesh, **options)
+    else:
+        candidates = table_candidates(scene.mesh, support_plane, travel=travel, **options)
     lap("setup")
     screened = top_k is not None and exact is not None and exact < len(candidates)
     order = screen_order(scene, candidates, travel) if screened else list(range(len(candidates)))
@@ -373,8 +429,9 @@ def plan(
     while True:
         for i in order[position : position + batch]:
             c = candidates[i]
+            limit = travel if c.travel is None else c.travel
             result = autograsp(
-                scene, c.palm_pose, spread_deg=c.spread_deg, max_travel=travel, quality=False
+                scene, c.palm_pose, spread_deg=c.spread_deg, max_travel=limit, quality=False
             )
             if support_plane is None or not crosses(support_plane, result):
                 done[i] = result
@@ -398,11 +455,13 @@ def screen_order(scene: CollisionScene, candidates: Sequence[Candidate], travel:
     """Candidate indices, most promising first by the screen's prediction: approaches that meet
     the object, then those where the palm touches (power grasps, :func:`rank_key`'s second key),
     then the centre of mass nearest the palm (a short lever); ties in candidate order."""
-    from grasp.screen import Screen
-
     palms = np.stack([c.palm_pose for c in candidates])
     spreads = np.array([c.spread_deg for c in candidates])
-    screen = Screen(scene.mesh, spacing=SCREEN_SPACING_M, nearest=True)
+    if any(c.travel is not None for c in candidates):
+        travel = np.array([travel if c.travel is None else c.travel for c in candidates])
+    screen = Screen(
+        scene.mesh, spacing=SCREEN_SPACING_M, nearest=True, support_plane=scene.support_plane
+    )
     touches, palm, depth = screen.predict(palms, spreads, travel, scene.center)
     return sorted(range(len(candidates)), key=lambda i: (not touches[i], not palm[i], depth[i], i))
 
@@ -497,52 +556,32 @@ def main(argv: Sequence[str] | None = None) -> None:
     parser = argparse.ArgumentParser(
         prog="python -m grasp.planner", description="Plan BarrettHand grasps on a mesh file."
     )
-    parser.add_argument(
-        "mesh", type=Path, help="mesh file (OBJ, STL, PLY, ...; metres) or an object id (named/mug)"
-    )
-    parser.add_argument("--candidates", type=int, default=64, help="candidate grasps to try")
-    parser.add_argument("--seed", type=int, default=0, help="seed of the candidates")
-    parser.add_argument("--top-k", type=int, default=5, help="grasps to print")
-    parser.add_argument("--scale", type=float, default=1.0, help="multiply the mesh by this")
-    parser.add_argument(
-        "--exact",
-        type=int,
-        default=EXACT_CANDIDATES,
-        help="candidates autograsped exactly per round after the screen (0: all, no screen)",
-    )
-    parser.add_argument(
-        "--support-plane",
-        type=_plane_argument,
-        default=None,
-        metavar="NX,NY,NZ,D",
-        help="the surface the object rests on, n·x + d = 0 in the mesh's frame, n up: no "
-        "approach from below, no hand below it",
-    )
+    add = parser.add_argument
+    add("mesh", type=Path, help="mesh file (OBJ, STL, PLY, ...; metres) or object id (named/mug)")
+    add("--candidates", type=int, default=64, help="candidate grasps to try")
+    add("--seed", type=int, default=0, help="seed of the candidates")
+    add("--top-k", type=int, default=5, help="grasps to print")
+    add("--scale", type=float, default=1.0, help="multiply the mesh by this")
+    add("--exact", type=int, default=EXACT_CANDIDATES,
+        help="candidates autograsped exactly per round after the screen (0: all, no screen)")
+    add("--support-plane", type=_plane_argument, default=None, metavar="NX,NY,NZ,D",
+        help="the table the object rests on, n·x + d = 0 in the mesh's frame, n up: an obstacle "
+        "to the hand, no approach from below")
     args = parser.parse_args(argv)
     mesh = read_mesh_argument(parser, args.mesh, scale=args.scale)
     wall, cpu = time.perf_counter(), time.process_time()
     timings: dict[str, float] = {}
-    results = plan(
-        mesh,
-        n_candidates=args.candidates,
-        seed=args.seed,
-        top_k=args.top_k,
-        support_plane=args.support_plane,
-        exact=None if args.exact == 0 else args.exact,
-        timings=timings,
-    )
+    results = plan(mesh, n_candidates=args.candidates, seed=args.seed, top_k=args.top_k,
+                   support_plane=args.support_plane, exact=None if args.exact == 0 else args.exact,
+                   timings=timings)
     wall, cpu = time.perf_counter() - wall, time.process_time() - cpu
-    print(
-        f"{args.mesh.name}: {len(mesh.faces)} faces, {args.candidates} candidates in "
-        f"{wall:.2f} s wall, {cpu:.2f} s CPU"
-    )
+    print(f"{args.mesh.name}: {len(mesh.faces)} faces, {args.candidates} candidates in "
+          f"{wall:.2f} s wall, {cpu:.2f} s CPU")
     names = ("setup", "screen", "autograsp", "rank")
     stages = ", ".join(f"{name} {1000 * timings[name]:.0f} ms" for name in names)
     rate = timings["screened"] / timings["screen"] if timings["screened"] else 0.0
-    print(
-        f"stages: {stages}; screened {timings['screened']} ({rate:.0f} a second), "
-        f"autograsped {timings['autograsped']}"
-    )
+    print(f"stages: {stages}; screened {timings['screened']} ({rate:.0f} a second), "
+          f"autograsped {timings['autograsped']}")
     for rank, r in enumerate(results, 1):
         position = ", ".join(f"{1000 * v:.0f}" for v in r.palm_pose[:3, 3])
         approach = ", ".join(f"{v:+.2f}" for v in r.palm_pose[:3, 2])
@@ -552,9 +591,8 @@ def main(argv: Sequence[str] | None = None) -> None:
             f"{'palm, ' if palm_touches(r) else ''}palm at ({position}) mm, "
             f"approach ({approach}), fingers along ({fingers})  {r.reason}"
         )
-        joints = "  ".join(f"{name} {v:.1f}°" for name, v in zip(JOINT_NAMES, r.joints_deg,
-                                                                   strict=True))
-        print(f"    {joints}")
+        joints = zip(JOINT_NAMES, r.joints_deg, strict=True)
+        print("    " + "  ".join(f"{name} {v:.1f}°" for name, v in joints))
 
 
 if __name__ == "__main__":

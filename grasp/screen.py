@@ -19,6 +19,10 @@ how often). The planner uses a coarse cloud (``grasp.planner.SCREEN_SPACING_M``,
 points) and nearest-voxel lookups: 64 candidates are screened in about 25 ms on this 2-core
 machine, where their exact autograsps take about 0.9 s (``python -m grasp.planner`` prints the
 stages; ``--exact 0`` autograsps all).
+
+With a support plane (``support_plane=``) the table is an obstacle too: a point's clearance is
+the smaller of its distance to the object and its height above the plane. For the planner's
+table candidates: :func:`open_hand_lowest` (exact primitives) and :func:`finger_reach`.
 """
 
 from __future__ import annotations
@@ -31,6 +35,7 @@ import trimesh
 from scipy import ndimage
 
 from completion.grid import sample_surface
+from grasp.sim import SupportPlane
 from hands.barrett import BH8_282, JOINT_NAMES, BarrettParams, HandKinematics
 
 #: Voxels of the distance field across the object's largest extent.
@@ -130,6 +135,43 @@ def hand_cloud(
             for link, p in cloud.items()}
 
 
+def open_hand_lowest(
+    plane: SupportPlane, palms: np.ndarray, spreads_deg: np.ndarray, params=BH8_282
+) -> np.ndarray:
+    """(k,) height above ``plane`` of the lowest point of the open hand (its exact primitives)
+    at (k, 4, 4) palm poses and (k,) spreads in degrees."""
+    kinematics = _kinematics(params)
+    lowest = np.full(len(palms), np.inf)
+    for spread in np.unique(spreads_deg):
+        sel = spreads_deg == spread
+        links = kinematics.link_poses(np.radians([spread, 0, 0, spread, 0, 0, 0, 0]))
+        for prim in kinematics.primitives:
+            low = plane.lowest(prim.kind, prim.size, palms[sel] @ links[prim.link] @ prim.pose)
+            lowest[sel] = np.minimum(lowest[sel], low)
+    return lowest
+
+
+@functools.lru_cache(maxsize=8)
+def finger_reach(params: BarrettParams = BH8_282) -> float:
+    """Deepest point (m below the palm face) that a freely closing finger passes through (J3 =
+    J2 / 3, 1° steps): about 0.114 m for the BH8-282."""
+    kinematics = _kinematics(params)
+    below = SupportPlane(np.array([0.0, 0.0, -1.0]), 0.0)  # height = depth in the palm frame
+    deepest = 0.0
+    for q in np.radians(np.arange(0.0, params.finger_dof_max_deg + 0.5, 1.0)):
+        j2, j3 = min(q, np.radians(params.proximal_max_deg)), params.distal_ratio * q
+        links = kinematics.link_poses(np.array([0.0, j2, j3, 0.0, j2, j3, j2, j3]))
+        for prim in kinematics.primitives_of("f1_prox") + kinematics.primitives_of("f1_dist"):
+            depth = -below.lowest(prim.kind, prim.size, links[prim.link] @ prim.pose)
+            deepest = max(deepest, float(depth))
+    return deepest
+
+
+@functools.lru_cache(maxsize=8)
+def _kinematics(params: BarrettParams) -> HandKinematics:
+    return HandKinematics(params)
+
+
 @functools.lru_cache(maxsize=8)
 def _hand_cloud(params: BarrettParams, spacing: float) -> dict[str, np.ndarray]:
     """:func:`hand_cloud` of a hand, built once per process."""
@@ -137,7 +179,8 @@ def _hand_cloud(params: BarrettParams, spacing: float) -> dict[str, np.ndarray]:
 
 
 class Screen:
-    """The screen for one object: its distance field and the hand's point cloud."""
+    """The screen for one object: its distance field and the hand's point cloud (and the table,
+    ``support_plane``, when there is one)."""
 
     def __init__(
         self,
@@ -147,8 +190,10 @@ class Screen:
         margin: float = 0.0,
         spacing: float = CLOUD_SPACING_M,
         nearest: bool = False,
+        support_plane: SupportPlane | None = None,
     ) -> None:
         self.field = DistanceField.of(mesh)
+        self.support_plane = support_plane
         self.kinematics = HandKinematics(params)
         self.cloud = _hand_cloud(params, spacing)
         self.margin = margin
@@ -179,44 +224,57 @@ class Screen:
             origin = origin + travel[:, None] * palms[:, :3, 2]
         return np.einsum("kij,knj->kni", palms[:, :3, :3], local) + origin[:, None, :]
 
+    def _gaps(self, hands: np.ndarray) -> np.ndarray:
+        """(k, n) clearance of (k, n, 3) hand points: to the object, or the table if nearer."""
+        gaps = self.field(hands, nearest=self.nearest)
+        if self.support_plane is not None:
+            gaps = np.minimum(gaps, self.support_plane.height(hands))
+        return gaps
+
     def clearance(self, palms: np.ndarray, spreads_deg: np.ndarray) -> np.ndarray:
-        """(k,) smallest signed distance from the open hand to the object at each palm pose."""
-        return self.field(self._world(palms, spreads_deg), nearest=self.nearest).min(axis=1)
+        """(k,) smallest signed distance from the open hand to the object (or the table) at
+        each palm pose."""
+        return self._gaps(self._world(palms, spreads_deg)).min(axis=1)
 
     def free(self, palms: np.ndarray, spreads_deg: np.ndarray) -> np.ndarray:
-        """(k,) bool: the open hand is clear of the object at each palm pose."""
+        """(k,) bool: the open hand is clear of the object (and the table) at each palm pose."""
         return self.clearance(palms, spreads_deg) > self.margin
 
     def approach(
-        self, palms: np.ndarray, spreads_deg: np.ndarray, max_travel: float, tol: float = 1e-3
+        self, palms: np.ndarray, spreads_deg: np.ndarray, max_travel, tol: float = 1e-3
     ) -> np.ndarray:
-        """(k,) travel along each palm's +z to first contact (``max_travel`` if none): sphere
-        tracing, each step the hand's clearance, which no point of the hand can cross."""
+        """(k,) travel along each palm's +z to first contact (``max_travel``, a number or (k,),
+        if none): sphere tracing, each step the hand's clearance, which no point of the hand
+        can cross."""
         travel = np.zeros(len(palms))
+        limit = np.broadcast_to(np.asarray(max_travel, dtype=np.float64), travel.shape)
         active = np.ones(len(palms), dtype=bool)
         for _ in range(64):
             if not active.any():
                 break
             idx = np.flatnonzero(active)
             hands = self._world(palms[idx], spreads_deg[idx], travel[idx])
-            gap = self.field(hands, nearest=self.nearest).min(axis=1)
-            done = (gap < tol) | (travel[idx] >= max_travel)
+            gap = self._gaps(hands).min(axis=1)
+            done = (gap < tol) | (travel[idx] >= limit[idx])
             step = np.where(done, 0.0, np.maximum(gap, tol))
-            travel[idx] = np.minimum(travel[idx] + step, max_travel)
+            travel[idx] = np.minimum(travel[idx] + step, limit[idx])
             active[idx[done]] = False
         return travel
 
     def predict(
-        self, palms: np.ndarray, spreads_deg: np.ndarray, max_travel: float, center: np.ndarray
+        self, palms: np.ndarray, spreads_deg: np.ndarray, max_travel, center: np.ndarray
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """What the planner orders its candidates by, for open hands approaching along their +z:
-        (touches (k,) bool: the approach meets the object; palm (k,) bool: the palm is what
-        touches it, within a voxel; depth (k,): distance (m) from the palm to ``center`` along
-        the approach when it stops)."""
+        """What the planner orders its candidates by, for open hands approaching along their +z
+        (at most ``max_travel``, a number or (k,)): (touches (k,) bool: the approach meets the
+        object, not the table; palm (k,) bool: the palm is what touches it, within a voxel;
+        depth (k,): distance (m) from the palm to ``center`` along the approach when it stops)."""
         travel = self.approach(palms, spreads_deg, max_travel)
-        hands = self.field(self._world(palms, spreads_deg, travel), nearest=self.nearest)
+        world = self._world(palms, spreads_deg, travel)
+        hands = self.field(world, nearest=self.nearest)
         palm_gap = hands[:, self.palm_points].min(axis=1)
         touches = travel < max_travel
+        if self.support_plane is not None:  # stopped by the object, not by the table
+            touches &= hands.min(axis=1) <= self.support_plane.height(world).min(axis=1)
         palm = touches & (palm_gap <= hands.min(axis=1) + self.field.pitch)
         stop = palms[:, :3, 3] + travel[:, None] * palms[:, :3, 2]
         depth = np.einsum("ki,ki->k", np.asarray(center)[None, :] - stop, palms[:, :3, 2])

@@ -13,6 +13,9 @@ Two views of the same world, built from the same :class:`hands.barrett.HandKinem
   object (a k-DOP: 106 support planes, an fcl ``Convex``; GJK distance ~20 µs) bounds the
   distance to the object from below, which lets autograsp take long safe steps through free
   space. (fcl's exact mesh distance would also do, but costs ~1 ms near a large surface.)
+  With a :class:`SupportPlane` the table is an obstacle too: an fcl ``Halfspace`` (exact against
+  boxes and cylinders, ~1 µs a query) in the same collision checks; contacts with it stop the
+  hand but are not object contacts.
 
 Both treat the object as a triangle soup, like GraspIt! and pybullet's concave meshes: a link that
 is entirely inside a closed mesh without crossing its surface is not "in collision". Autograsp's
@@ -25,6 +28,7 @@ pybullet tuples become named records (:class:`JointInfo`, :class:`ClosestPoint`)
 from __future__ import annotations
 
 import contextlib
+import copy
 import tempfile
 from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass
@@ -55,6 +59,60 @@ _BOUND_DIRECTIONS = 100
 
 
 # -- records ---------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class SupportPlane:
+    """The surface the object rests on: points x with n·x + d = 0, n (unit) pointing up."""
+
+    normal: np.ndarray
+    offset: float
+
+    def __post_init__(self) -> None:
+        n = np.asarray(self.normal, dtype=np.float64).reshape(-1)
+        if n.shape != (3,) or not np.isfinite(n).all():
+            raise ValueError(f"a support plane's normal must be 3 finite numbers, got {n}")
+        if not np.isfinite(self.offset):
+            raise ValueError(f"a support plane's offset d must be finite, got {self.offset}")
+        norm = float(np.linalg.norm(n))
+        if not 1e-9 <= norm < np.inf:
+            raise ValueError(f"the support plane's normal must have a length of at least 1e-9 "
+                             f"(and not be zero), got {n.tolist()}")
+        object.__setattr__(self, "normal", n / norm)
+        object.__setattr__(self, "offset", float(self.offset) / norm)
+
+    @classmethod
+    def parse(cls, text: str) -> SupportPlane:
+        """From "nx,ny,nz,d" (the query and CLI form)."""
+        try:
+            values = [float(v) for v in text.split(",")]
+        except ValueError:
+            values = []
+        if len(values) != 4:
+            raise ValueError(f"a support plane is four numbers nx,ny,nz,d; got {text!r}")
+        return cls(np.array(values[:3]), values[3])
+
+    def height(self, points: np.ndarray) -> np.ndarray:
+        """Signed distance of (n, 3) points above the plane (metres)."""
+        return np.asarray(points, dtype=np.float64) @ self.normal + self.offset
+
+    def transformed(self, pose: np.ndarray) -> SupportPlane:
+        """The same plane in the frame whose pose (frame→here) is ``pose``."""
+        pose = np.asarray(pose, dtype=np.float64)
+        normal = pose[:3, :3].T @ self.normal
+        return SupportPlane(normal, self.offset + float(self.normal @ pose[:3, 3]))
+
+    def lowest(self, kind: str, size: Sequence[float], pose: np.ndarray) -> np.ndarray:
+        """Height (m) above the plane of the lowest point of a box (full extents ``size``) or a
+        cylinder ((radius, length) along its z) at (..., 4, 4) ``pose``: (...), negative below."""
+        pose = np.asarray(pose, dtype=np.float64)
+        down = np.einsum("...ji,j->...i", pose[..., :3, :3], self.normal)  # primitive's frame
+        centre = self.height(pose[..., :3, 3])
+        if kind == "box":
+            return centre - 0.5 * np.abs(down) @ np.asarray(size, dtype=np.float64)
+        radius, length = size
+        cos = np.abs(down[..., 2])
+        return centre - 0.5 * length * cos - radius * np.sqrt(np.clip(1.0 - cos * cos, 0.0, 1.0))
+
+
 @dataclass(frozen=True)
 class Contact:
     """One hand–object contact, world frame, metres.
@@ -158,6 +216,9 @@ class CollisionScene:
         Hand dimensions.
     contact_distance : float
         Surfaces closer than this (metres) are reported as contacts.
+    support_plane : SupportPlane or None
+        The table under the object: the hand collides with the half-space below it too
+        (:meth:`with_support_plane` adds one to a built scene).
     """
 
     def __init__(
@@ -166,6 +227,7 @@ class CollisionScene:
         *,
         params: BarrettParams = BH8_282,
         contact_distance: float = CONTACT_DISTANCE_M,
+        support_plane: SupportPlane | None = None,
     ) -> None:
         self.mesh = check_mesh(mesh)
         if not contact_distance > 0.0:
@@ -188,6 +250,25 @@ class CollisionScene:
         self._bool_request = fcl.CollisionRequest()
         self._contact_request = fcl.CollisionRequest(num_max_contacts=256, enable_contact=True)
         self._distance_request = fcl.DistanceRequest()
+        self._set_table(support_plane)
+
+    def _set_table(self, plane: SupportPlane | None) -> None:
+        if plane is not None and not isinstance(plane, SupportPlane):
+            raise ValueError(f"support_plane must be a SupportPlane or None, got {type(plane)}")
+        self.support_plane = plane
+        self._table = None
+        if plane is not None:  # fcl's Halfspace(n, d) is {x : n·x <= d}
+            shape = fcl.Halfspace(plane.normal, -plane.offset)
+            self._table = fcl.CollisionObject(shape, fcl.Transform())
+
+    def with_support_plane(self, plane: SupportPlane | None) -> CollisionScene:
+        """This scene with ``plane`` as the table (None: without one), sharing the object's
+        collision model (no rebuild)."""
+        if plane is self.support_plane:
+            return self
+        out = copy.copy(self)
+        out._set_table(plane)
+        return out
 
     @staticmethod
     def _bounding_polytope(mesh: trimesh.Trimesh):
@@ -207,28 +288,48 @@ class CollisionScene:
 
     # -- queries ---------------------------------------------------------------------------------
     def link_collides(self, link: str, link_to_world: np.ndarray) -> bool:
-        """Whether ``link`` at pose ``link_to_world`` (4, 4) overlaps the object's surface."""
+        """Whether ``link`` at pose ``link_to_world`` (4, 4) overlaps the object's surface or
+        reaches below the table."""
         shapes = self.links[link]
+        table = self._table
         for local, obj in zip(shapes.local, shapes.exact, strict=True):
             pose = link_to_world @ local
             obj.setTransform(fcl.Transform(pose[:3, :3], pose[:3, 3]))
             if fcl.collide(obj, self._object, self._bool_request, fcl.CollisionResult()):
                 return True
+            if table is not None and fcl.collide(
+                obj, table, self._bool_request, fcl.CollisionResult()
+            ):
+                return True
         return False
 
     def colliding_links(self, link_poses: Mapping[str, np.ndarray]) -> list[str]:
-        """Names of the links (keys of ``link_poses``, link→world (4, 4)) overlapping the object."""
+        """Names of the links (keys of ``link_poses``, link→world (4, 4)) overlapping the object
+        or the table."""
         return [link for link, pose in link_poses.items() if self.link_collides(link, pose)]
 
-    def hull_distance(self, link: str, link_to_world: np.ndarray) -> float:
-        """Lower bound on the distance (m) from ``link`` to the object; 0 if unknown or touching.
+    def table_distance(self, link: str, link_to_world: np.ndarray) -> float:
+        """Lower bound on the height (m) of ``link`` above the table (inf without one): its
+        primitives' bounding-box corners."""
+        if self.support_plane is None:
+            return np.inf
+        corners = self.links[link].corners
+        world = corners @ link_to_world[:3, :3].T + link_to_world[:3, 3]
+        return max(float(self.support_plane.height(world).min()), 0.0)
 
-        It is the exact distance to a convex polytope that contains the object.
+    def hull_distance(self, link: str, link_to_world: np.ndarray) -> float:
+        """Lower bound on the distance (m) from ``link`` to the object and the table; 0 if
+        unknown or touching.
+
+        It is the exact distance to a convex polytope that contains the object (and a lower
+        bound on the height above the table).
         """
         if self._hull is None:
             return 0.0
         shapes = self.links[link]
-        best = np.inf
+        best = self.table_distance(link, link_to_world)
+        if best <= 0.0:
+            return 0.0
         for local, obj in zip(shapes.local, shapes.exact, strict=True):
             pose = link_to_world @ local
             obj.setTransform(fcl.Transform(pose[:3, :3], pose[:3, 3]))
@@ -245,14 +346,15 @@ class CollisionScene:
         }
 
     def hand_collides(self, palm_pose: np.ndarray, joints_rad: Sequence[float]) -> bool:
-        """Whether any link of the hand overlaps the object."""
+        """Whether any link of the hand overlaps the object (or the table)."""
         poses = self.hand_link_poses(check_pose(palm_pose), joints_rad)
         return any(self.link_collides(link, pose) for link, pose in poses.items())
 
     def contacts(
         self, link_poses: Mapping[str, np.ndarray], *, max_per_patch: int = MAX_CONTACTS_PER_PATCH
     ) -> list[Contact]:
-        """Contacts between the given links (link→world (4, 4)) and the object.
+        """Contacts between the given links (link→world (4, 4)) and the object (never the
+        table: it stops the hand but takes no part in the grasp's quality).
 
         A link is in contact where it comes within ``contact_distance`` of the surface (its
         primitives are inflated by that much). fcl reports one contact per touching triangle;

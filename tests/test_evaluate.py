@@ -60,44 +60,6 @@ def _tiny_weights(folder, *, logit: float | None = 2.0) -> dict[str, str]:
 # ------------------------------------------------------------------------------ fusion reference
 
 
-def test_below_plane_counts_voxel_centres_under_the_support_plane():
-    from completion.scenes import Sequence
-    from grasp.evaluate.runner import below_plane
-
-    grid = np.diag([0.01, 0.01, 0.01, 1.0])
-    grid[:3, 3] = [0.0, 0.0, -0.105]  # voxel k's centre at z = 0.01 k − 0.105
-    camera = np.eye(4)
-    camera[:3, 3] = [0.0, 0.0, 0.5]  # the camera frame sits 0.5 m up in the world
-    seq = Sequence(np.zeros((1, 40, 40, 40), bool), np.zeros((1, 40, 40, 40), bool),
-                   grid[None], camera[None], meta={"support_plane": [0.0, 0.0, 1.0, 0.45]})
-    occupied = np.zeros((40, 40, 40), bool)
-    occupied[5, 5, 0:10] = True  # world z = 0.395 + 0.01 k: below the plane z = −0.45? none
-    assert below_plane(occupied, seq, 0) == 0.0
-    seq.meta["support_plane"] = [0.0, 0.0, 1.0, -0.44]  # the plane z = 0.44: k ≤ 4 below
-    assert below_plane(occupied, seq, 0) == pytest.approx(0.5)
-    assert below_plane(np.zeros_like(occupied), seq, 0) == 0.0
-
-
-def test_benchmark_objects_and_success_intervals():
-    from grasp.evaluate.benchmark import benchmark_objects, summarise, wilson
-
-    objects = benchmark_objects(30, 0)
-    assert objects == benchmark_objects(30, 0) != benchmark_objects(30, 1)
-    assert len(set(objects)) == 30 and objects[0] == "named/mug" and objects[10] == "named/duck"
-    assert all(o.split("/")[0] in ("proc", "urdf") for k, o in enumerate(objects) if k % 10)
-    assert wilson(0, 10) == pytest.approx([0.0, 0.2775], abs=1e-4)  # textbook values
-    assert wilson(10, 10) == pytest.approx([0.7225, 1.0], abs=1e-4)
-    assert wilson(45, 50) == pytest.approx([0.7864, 0.9565], abs=1e-4)
-    records = [{"a": {"held": True, "reason": "held"}},
-               {"a": {"held": False, "reason": "the object left the hand during lift, 0.5 s"}},
-               {"a": {"held": False, "reason": "the object left the hand during shake, 2.1 s"}},
-               {"a": {"held": False, "reason": "no grasp planned"}}]
-    cell = summarise(records, ["a"])["a"]
-    assert (cell["held"], cell["tested"]) == (1, 4)
-    assert cell["reasons"] == {"no grasp planned": 1, "the object left the hand during lift": 1,
-                               "the object left the hand during shake": 1}
-
-
 def test_registered_fusion_maps_observed_voxels_with_the_camera_poses():
     pitch = 0.01
     g2c = np.eye(4)
@@ -319,11 +281,9 @@ def test_tiny_run_writes_its_reports(tiny_run):
     assert list(bench) == ["true_mesh", "mvp_1view", "mvp_4views", "single_view_1view",
                            "registered_fusion_4views"]
     for cell in bench.values():
-        assert cell["tested"] == 1 and cell["held"] in (0, 1)
+        assert cell["tested"] == 1 and sum(cell["reasons"].values()) == 1 - cell["held"]
         assert 0 <= cell["ci95"][0] <= cell["held"] <= cell["ci95"][1] <= 1
-        assert sum(cell["reasons"].values()) == 1 - cell["held"]
-    assert results["grasp_benchmark_objects"] == ["named/mug"]
-    assert "Grasp success on a table" in report
+    assert results["grasp_benchmark_objects"] == ["named/mug"] and "on a table" in report
     records = [r for r in results["per_object"] if r["table"] == "main"]
     assert len(records) == len(CONDITIONS) * 2 * len(ev.ROWS)
     for kind in ("wall", "cpu"):

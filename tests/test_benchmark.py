@@ -1,0 +1,43 @@
+"""The evaluation's table-top parts: the share of a completion below the table, and the grasp
+benchmark's objects and success intervals."""
+
+import numpy as np
+import pytest
+
+
+def test_below_plane_counts_voxel_centres_under_the_support_plane():
+    from completion.scenes import Sequence
+    from grasp.evaluate.runner import below_plane
+
+    grid = np.diag([0.01, 0.01, 0.01, 1.0])
+    grid[:3, 3] = [0.0, 0.0, -0.105]  # voxel k's centre at z = 0.01 k − 0.105
+    camera = np.eye(4)
+    camera[:3, 3] = [0.0, 0.0, 0.5]  # the camera frame sits 0.5 m up in the world
+    seq = Sequence(np.zeros((1, 40, 40, 40), bool), np.zeros((1, 40, 40, 40), bool),
+                   grid[None], camera[None], meta={"support_plane": [0.0, 0.0, 1.0, 0.45]})
+    occupied = np.zeros((40, 40, 40), bool)
+    occupied[5, 5, 0:10] = True  # world z = 0.395 + 0.01 k: below the plane z = −0.45? none
+    assert below_plane(occupied, seq, 0) == 0.0
+    seq.meta["support_plane"] = [0.0, 0.0, 1.0, -0.44]  # the plane z = 0.44: k ≤ 4 below
+    assert below_plane(occupied, seq, 0) == pytest.approx(0.5)
+    assert below_plane(np.zeros_like(occupied), seq, 0) == 0.0
+
+
+def test_benchmark_objects_and_success_intervals():
+    from grasp.evaluate.benchmark import benchmark_objects, summarise, wilson
+
+    objects = benchmark_objects(30, 0)
+    assert objects == benchmark_objects(30, 0) != benchmark_objects(30, 1)
+    assert len(set(objects)) == 30 and objects[0] == "named/mug" and objects[10] == "named/duck"
+    assert all(o.split("/")[0] in ("proc", "urdf") for k, o in enumerate(objects) if k % 10)
+    assert wilson(0, 10) == pytest.approx([0.0, 0.2775], abs=1e-4)  # textbook values
+    assert wilson(10, 10) == pytest.approx([0.7225, 1.0], abs=1e-4)
+    assert wilson(45, 50) == pytest.approx([0.7864, 0.9565], abs=1e-4)
+    records = [{"a": {"held": True, "reason": "held"}},
+               {"a": {"held": False, "reason": "the object left the hand during lift, 0.5 s"}},
+               {"a": {"held": False, "reason": "the object left the hand during shake, 2.1 s"}},
+               {"a": {"held": False, "reason": "no grasp planned"}}]
+    cell = summarise(records, ["a"])["a"]
+    assert (cell["held"], cell["tested"]) == (1, 4)
+    assert cell["reasons"] == {"no grasp planned": 1, "the object left the hand during lift": 1,
+                               "the object left the hand during shake": 1}
