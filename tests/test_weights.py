@@ -19,15 +19,15 @@ SHIPPED = ("single_view", "mvp", "mvp3", "mvp6", "mvt", "lstm")
 RECIPE = WEIGHTS_DIR / "recipe.sh"
 
 # mean logit over the three views, the logit at the grid's fit centre (20, 20, 18) in each view,
-# and one behind the box (20, 20, 30) in the last view; measured with the shipped weights at
-# commit 2d47970 (before the clean-up of stop 37) and unchanged to the bit since
+# and one behind the box (20, 20, 30) in the last view; measured with the weights fine-tuned on
+# the tabletop condition and the sensor model (stage 8 of recipe.sh)
 PINNED = {
-    "single_view": (-12.450103, (4.11508, 2.27792, 2.45999), -4.41251),
-    "mvp": (-15.259812, (3.93704, 2.88926, 2.84533), -2.99020),
-    "mvp3": (-14.596991, (3.87652, 2.94933, 2.85967), -2.56705),
-    "mvp6": (-14.900042, (4.07312, 3.20274, 3.07243), -3.87178),
-    "mvt": (-15.297692, (3.84849, 2.92233, 2.92344), -2.82559),
-    "lstm": (-12.793470, (3.87196, 2.69653, 2.84410), -5.68757),
+    "single_view": (-13.438004, (4.02328, 2.35778, 2.67393), -5.79094),
+    "mvp": (-15.887015, (4.24681, 2.99575, 2.98998), -5.20043),
+    "mvp3": (-15.217424, (3.67307, 2.82941, 2.70157), -4.72024),
+    "mvp6": (-15.728884, (3.99748, 3.47390, 3.32006), -5.24471),
+    "mvt": (-15.903470, (4.11923, 2.92394, 2.80515), -5.23122),
+    "lstm": (-13.641406, (4.28361, 3.12333, 3.21480), -7.00000),
 }
 
 
@@ -75,7 +75,7 @@ def test_shipped_weights_give_the_pinned_logits(name: str) -> None:
         logits, state = model.step(state, x[:, t])
         streamed.append(logits)
     torch.testing.assert_close(torch.stack(streamed, 1), parallel, atol=1e-4, rtol=0)
-    assert model.threshold == pytest.approx(0.6)  # select-threshold's choice for all six
+    assert model.threshold == pytest.approx(0.5)  # select-threshold's choice for all six
 
 
 def recipe_commands() -> list[list[str]]:

@@ -70,8 +70,31 @@ run $T6 --model lstm $F $MEM --init-from runs/s10/lstm.pt --out runs/final/lstm.
 run $T6 --model mvp6 $F $MEM --views 6 --batch-size 4 --init-from runs/s10/mvp6.pt --out runs/final/mvp6.pt
 run $T6 --model mvp3 $F $MEM --views 3 --batch-size 8 --init-from runs/s10/mvp3.pt --out runs/final/mvp3.pt
 
-# 7. Ship: one decision threshold for all six, chosen on their validation sweeps (it chose 0.60).
+# 7. One decision threshold for all six, chosen on their validation sweeps (it chose 0.60).
+run python -m completion.train select-threshold runs/final/single_view.pt runs/final/mvp.pt runs/final/mvt.pt runs/final/lstm.pt runs/final/mvp3.pt runs/final/mvp6.pt
+
+# 8. What a robot sees: the tabletop condition (sensor model on) and the sensor model as an
+#    augmentation of the paper's five, in data/table/: tabletop 1,200 sequences (seed 1), the
+#    first 480 per paper condition (seed 1, noiseless) and 240 per paper condition with the sensor
+#    model (seed 2); validation 24 per condition (seed 0). Each model from its stage-6 weights,
+#    600 steps (about 7.5 min each on 2 cores).
+run python -m completion.data generate --condition all --split val --count 24 --seed 0 --out data/table/val --workers 2
+run python -m completion.data generate --condition tabletop --split train --count 1200 --seed 1 --out data/table/train --workers 2
+P5=camera_pan,two_object_pan,object_hiding,object_reveal,slide_behind
+run python -m completion.data generate --condition $P5 --split train --count 480 --seed 1 --out data/table/train --workers 2
+run python -m completion.data generate --condition $P5 --split train --count 240 --seed 2 --noise on --out data/table/train --workers 2
+TT="python -m completion.train --conditions all --train-dir data/table/train --val-dir data/table/val --train-count 0 --val-count 24 --threads 2 --quiet"
+G="--steps 600 --val-every 300 --lr 3e-4 $J $ROLL --seed 4"
+run $TT --model mvp $G $MEM --init-from runs/final/mvp.pt --out runs/table/mvp.pt
+run $TT --model single_view $G --init-from runs/final/single_view.pt --out runs/table/single_view.pt
+run $TT --model mvt $G $MEM --init-from runs/final/mvt.pt --out runs/table/mvt.pt
+run $TT --model lstm $G $MEM --init-from runs/final/lstm.pt --out runs/table/lstm.pt
+run $TT --model mvp6 $G $MEM --views 6 --batch-size 4 --init-from runs/final/mvp6.pt --out runs/table/mvp6.pt
+run $TT --model mvp3 $G $MEM --views 3 --batch-size 8 --init-from runs/final/mvp3.pt --out runs/table/mvp3.pt
+
+# 9. Ship: one threshold for all six (it chose 0.50), then the prior on the same data.
 for name in single_view mvp mvt lstm mvp3 mvp6; do
-  run cp "runs/final/$name.pt" "completion/weights/$name.pt"
+  run cp "runs/table/$name.pt" "completion/weights/$name.pt"
 done
 run python -m completion.train select-threshold completion/weights/single_view.pt completion/weights/mvp.pt completion/weights/mvt.pt completion/weights/lstm.pt completion/weights/mvp3.pt completion/weights/mvp6.pt
+run python -m completion.prior --train-dir data/table/train --val-dir data/table/val --out completion/weights/prior.npz
