@@ -54,7 +54,8 @@ import numpy as np
 import trimesh
 
 from grasp.quality import EPSILON_NO_CLOSURE, MU_RUBBER, contacts_quality
-from grasp.sim import CollisionScene, Contact, SupportPlane, check_pose
+from grasp.sim import CollisionScene, Contact, check_pose
+from grasp.table import SupportPlane
 from hands.barrett import FINGERS, JOINT_NAMES
 from hands.barrett.kinematics import rotation_about
 

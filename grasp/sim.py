@@ -41,6 +41,7 @@ import trimesh
 from scipy.spatial import ConvexHull, HalfspaceIntersection, QhullError
 
 from completion.bullet import direct_client, pose_to_pybullet, pybullet, pybullet_to_pose
+from grasp.table import SupportPlane
 from hands.barrett import BH8_282, JOINT_NAMES, LINK_NAMES, BarrettParams, HandKinematics
 from hands.barrett.kinematics import Primitive
 
@@ -59,60 +60,6 @@ _BOUND_DIRECTIONS = 100
 
 
 # -- records ---------------------------------------------------------------------------------------
-@dataclass(frozen=True)
-class SupportPlane:
-    """The surface the object rests on: points x with n·x + d = 0, n (unit) pointing up."""
-
-    normal: np.ndarray
-    offset: float
-
-    def __post_init__(self) -> None:
-        n = np.asarray(self.normal, dtype=np.float64).reshape(-1)
-        if n.shape != (3,) or not np.isfinite(n).all():
-            raise ValueError(f"a support plane's normal must be 3 finite numbers, got {n}")
-        if not np.isfinite(self.offset):
-            raise ValueError(f"a support plane's offset d must be finite, got {self.offset}")
-        norm = float(np.linalg.norm(n))
-        if not 1e-9 <= norm < np.inf:
-            raise ValueError(f"the support plane's normal must have a length of at least 1e-9 "
-                             f"(and not be zero), got {n.tolist()}")
-        object.__setattr__(self, "normal", n / norm)
-        object.__setattr__(self, "offset", float(self.offset) / norm)
-
-    @classmethod
-    def parse(cls, text: str) -> SupportPlane:
-        """From "nx,ny,nz,d" (the query and CLI form)."""
-        try:
-            values = [float(v) for v in text.split(",")]
-        except ValueError:
-            values = []
-        if len(values) != 4:
-            raise ValueError(f"a support plane is four numbers nx,ny,nz,d; got {text!r}")
-        return cls(np.array(values[:3]), values[3])
-
-    def height(self, points: np.ndarray) -> np.ndarray:
-        """Signed distance of (n, 3) points above the plane (metres)."""
-        return np.asarray(points, dtype=np.float64) @ self.normal + self.offset
-
-    def transformed(self, pose: np.ndarray) -> SupportPlane:
-        """The same plane in the frame whose pose (frame→here) is ``pose``."""
-        pose = np.asarray(pose, dtype=np.float64)
-        normal = pose[:3, :3].T @ self.normal
-        return SupportPlane(normal, self.offset + float(self.normal @ pose[:3, 3]))
-
-    def lowest(self, kind: str, size: Sequence[float], pose: np.ndarray) -> np.ndarray:
-        """Height (m) above the plane of the lowest point of a box (full extents ``size``) or a
-        cylinder ((radius, length) along its z) at (..., 4, 4) ``pose``: (...), negative below."""
-        pose = np.asarray(pose, dtype=np.float64)
-        down = np.einsum("...ji,j->...i", pose[..., :3, :3], self.normal)  # primitive's frame
-        centre = self.height(pose[..., :3, 3])
-        if kind == "box":
-            return centre - 0.5 * np.abs(down) @ np.asarray(size, dtype=np.float64)
-        radius, length = size
-        cos = np.abs(down[..., 2])
-        return centre - 0.5 * length * cos - radius * np.sqrt(np.clip(1.0 - cos * cos, 0.0, 1.0))
-
-
 @dataclass(frozen=True)
 class Contact:
     """One hand–object contact, world frame, metres.

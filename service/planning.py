@@ -47,7 +47,7 @@ def plan_grasps(
 ) -> tuple[list, float]:
     """``grasp.planner.plan`` on the mesh (vertices (v, 3), faces (f, 3)); also its seconds.
 
-    ``support_plane``: a ``grasp.planner.SupportPlane`` in the mesh's frame, or None."""
+    ``support_plane``: a ``grasp.table.SupportPlane`` in the mesh's frame, or None."""
     import trimesh
 
     from grasp.planner import plan

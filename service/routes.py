@@ -18,7 +18,8 @@ from fastapi import APIRouter, Depends, Path, Query, Request, Response, status
 from completion.mesh import MeshFormat, export_mesh
 from completion.stream import stored_support_plane
 from grasp.autograsp import pregrasp_pose
-from grasp.planner import SupportPlane, hand_primitives, palm_touches, too_large
+from grasp.planner import palm_touches, too_large
+from grasp.table import SupportPlane, hand_primitives
 from hands.barrett import JOINT_NAMES
 from service.deps import Services, ServicesDep, require_token
 from service.inputs import InputError

@@ -9,25 +9,20 @@ from grasp_scenes import box
 from scipy.spatial.transform import Rotation
 
 from grasp.autograsp import autograsp
+from grasp.candidates import STANDOFF_M, candidate_poses, principal_axes
 from grasp.planner import (
     DISTINCT_DEG,
     DISTINCT_M,
     EXACT_CANDIDATES,
     SCREEN_SPACING_M,
-    STANDOFF_M,
-    SupportPlane,
-    candidate_poses,
-    crosses,
     depth_of,
     distinct,
-    hand_clearance,
-    hand_points,
     palm_touches,
     plan,
-    principal_axes,
     rank_key,
 )
 from grasp.sim import CollisionScene
+from grasp.table import SupportPlane, crosses, hand_clearance, hand_points
 
 
 @pytest.fixture(scope="module")
@@ -228,7 +223,7 @@ def test_fast_screen_agrees_with_the_exact_check_on_free_poses(object_id):
     fcl check agree on whether the open hand is clear; where they differ, the hand is within
     about a voxel of touching, and the screen never calls a colliding pose free."""
     from completion.objects import load_object
-    from grasp.planner import _random_rotation
+    from grasp.candidates import _random_rotation
     from grasp.screen import Screen
 
     mesh = load_object(object_id)

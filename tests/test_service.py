@@ -153,7 +153,7 @@ def test_grasp_on_a_support_plane(client, scene):
     """The table under the object (world z of its lowest point): no grasp from below it, no
     hand link below it, in the world frame the plane was given in."""
     from grasp.autograsp import GraspResult, HandDofs, HandJoints
-    from grasp.planner import SupportPlane, hand_points
+    from grasp.table import SupportPlane, hand_points
 
     bodies = scene_views(scene)[:2]
     sid = new_session(client, bodies[0])

@@ -18,17 +18,11 @@ from scipy.optimize import brentq
 from scipy.spatial.transform import Rotation
 
 from grasp.autograsp import autograsp
-from grasp.planner import (
-    TABLE_CLEARANCE_M,
-    TABLE_TOL_M,
-    SupportPlane,
-    hand_clearance,
-    hand_primitives,
-    plan,
-    table_candidates,
-)
+from grasp.candidates import TABLE_CLEARANCE_M, table_candidates
+from grasp.planner import plan
 from grasp.screen import Screen, finger_reach, open_hand_lowest
 from grasp.sim import CollisionScene
+from grasp.table import TABLE_TOL_M, SupportPlane, hand_clearance, hand_primitives
 
 FLOOR = SupportPlane(np.array([0.0, 0.0, 1.0]), 0.0)  # the table z = 0
 BEND = math.radians(40.0)

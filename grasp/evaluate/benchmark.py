@@ -139,7 +139,8 @@ def run_object(scene: Scene, models: dict, thresholds: dict, rows, *, candidates
                seed: int) -> dict[str, dict]:
     """row -> {"held": bool, "reason": str} for one object."""
     from grasp.physics import lift_test
-    from grasp.planner import SupportPlane, plan
+    from grasp.planner import plan
+    from grasp.table import SupportPlane
 
     table = SupportPlane(TABLE[:3], float(TABLE[3]))
     out = {}

@@ -1,0 +1,131 @@
+"""The table an object rests on, and the hand against it.
+
+:class:`SupportPlane` is the surface (n·x + d = 0, n up, the object on its upper side): given on
+``POST /views`` or ``GET /grasp``, it cuts the completion (:mod:`completion.stream`) and is an
+obstacle to the hand as in GraspIt! (an fcl halfspace in :class:`grasp.sim.CollisionScene`; the
+approach and every finger stop at it, :mod:`grasp.autograsp`). The functions below place the
+hand's collision primitives by its kinematics and measure how far the hand of a grasp stays
+above the plane: the planner drops any grasp that crosses it (:func:`crosses`).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Protocol
+
+import numpy as np
+
+from completion.grid import transform_points
+from hands.barrett import HandKinematics
+
+#: A grasp whose hand reaches further below the table is dropped (only rounding can put it there).
+TABLE_TOL_M = 1e-6
+
+@dataclass(frozen=True)
+class SupportPlane:
+    """The surface the object rests on: points x with n·x + d = 0, n (unit) pointing up."""
+
+    normal: np.ndarray
+    offset: float
+
+    def __post_init__(self) -> None:
+        n = np.asarray(self.normal, dtype=np.float64).reshape(-1)
+        if n.shape != (3,) or not np.isfinite(n).all():
+            raise ValueError(f"a support plane's normal must be 3 finite numbers, got {n}")
+        if not np.isfinite(self.offset):
+            raise ValueError(f"a support plane's offset d must be finite, got {self.offset}")
+        norm = float(np.linalg.norm(n))
+        if not 1e-9 <= norm < np.inf:
+            raise ValueError(f"the support plane's normal must have a length of at least 1e-9 "
+                             f"(and not be zero), got {n.tolist()}")
+        object.__setattr__(self, "normal", n / norm)
+        object.__setattr__(self, "offset", float(self.offset) / norm)
+
+    @classmethod
+    def parse(cls, text: str) -> SupportPlane:
+        """From "nx,ny,nz,d" (the query and CLI form)."""
+        try:
+            values = [float(v) for v in text.split(",")]
+        except ValueError:
+            values = []
+        if len(values) != 4:
+            raise ValueError(f"a support plane is four numbers nx,ny,nz,d; got {text!r}")
+        return cls(np.array(values[:3]), values[3])
+
+    def height(self, points: np.ndarray) -> np.ndarray:
+        """Signed distance of (n, 3) points above the plane (metres)."""
+        return np.asarray(points, dtype=np.float64) @ self.normal + self.offset
+
+    def transformed(self, pose: np.ndarray) -> SupportPlane:
+        """The same plane in the frame whose pose (frame→here) is ``pose``."""
+        pose = np.asarray(pose, dtype=np.float64)
+        normal = pose[:3, :3].T @ self.normal
+        return SupportPlane(normal, self.offset + float(self.normal @ pose[:3, 3]))
+
+    def lowest(self, kind: str, size: Sequence[float], pose: np.ndarray) -> np.ndarray:
+        """Height (m) above the plane of the lowest point of a box (full extents ``size``) or a
+        cylinder ((radius, length) along its z) at (..., 4, 4) ``pose``: (...), negative below."""
+        pose = np.asarray(pose, dtype=np.float64)
+        down = np.einsum("...ji,j->...i", pose[..., :3, :3], self.normal)  # primitive's frame
+        centre = self.height(pose[..., :3, 3])
+        if kind == "box":
+            return centre - 0.5 * np.abs(down) @ np.asarray(size, dtype=np.float64)
+        radius, length = size
+        cos = np.abs(down[..., 2])
+        return centre - 0.5 * length * cos - radius * np.sqrt(np.clip(1.0 - cos * cos, 0.0, 1.0))
+
+
+_KINEMATICS = HandKinematics()
+
+
+class HandPose(Protocol):
+    """What the functions below read of a grasp (a :class:`grasp.autograsp.GraspResult`)."""
+
+    palm_pose: np.ndarray  # (4, 4) palm→world
+    joints_deg: Sequence[float]  # in hands.barrett.JOINT_NAMES order
+
+
+def _link_poses(grasp: HandPose) -> dict[str, np.ndarray]:
+    """Every link's (4, 4) link→world pose in ``grasp``, by the hand's kinematics."""
+    joints = np.radians(np.asarray(grasp.joints_deg, dtype=np.float64))
+    return {link: grasp.palm_pose @ pose for link, pose in _KINEMATICS.link_poses(joints).items()}
+
+
+def hand_primitives(grasp: HandPose) -> list[tuple[str, str, tuple[float, ...], np.ndarray]]:
+    """The hand of ``grasp`` as collision primitives placed by the hand's kinematics:
+    (link, "box" or "cylinder", size, (4, 4) primitive→world pose) each. Box sizes are full
+    extents; a cylinder is (radius, length) along its local z."""
+    links = _link_poses(grasp)
+    return [
+        (prim.link, prim.kind, tuple(prim.size), links[prim.link] @ prim.pose)
+        for prim in _KINEMATICS.primitives
+    ]
+
+
+def hand_points(grasp: HandPose) -> np.ndarray:
+    """(n, 3) points on the hand's collision primitives in ``grasp`` (world): every box's
+    corners and 64 points around each rim of every cylinder."""
+    angles = np.linspace(0.0, 2.0 * np.pi, 64, endpoint=False)
+    out = []
+    for _, kind, size, pose in hand_primitives(grasp):
+        if kind == "box":
+            local = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)])
+            local = 0.5 * local * np.asarray(size)
+        else:
+            rim = np.c_[size[0] * np.cos(angles), size[0] * np.sin(angles), np.zeros(64)]
+            local = np.concatenate([rim + [0.0, 0.0, z] for z in (-size[1] / 2, size[1] / 2)])
+        out.append(transform_points(local, pose))
+    return np.concatenate(out)
+
+
+def hand_clearance(plane: SupportPlane, grasp: HandPose) -> float:
+    """Height (m) of the hand's lowest point above ``plane`` in ``grasp`` (negative: below)."""
+    return float(
+        min(plane.lowest(kind, size, pose) for _, kind, size, pose in hand_primitives(grasp))
+    )
+
+
+def crosses(plane: SupportPlane, grasp: HandPose, *, tol: float = TABLE_TOL_M) -> bool:
+    """Whether any part of the hand reaches more than ``tol`` below the support plane."""
+    return hand_clearance(plane, grasp) < -tol
