@@ -136,8 +136,18 @@ def build_parser() -> argparse.ArgumentParser:
         help="planner candidates of the benchmark's grasps (default 64, the service's)",
     )
     p.add_argument(
+        "--sensor",
+        type=integer_at_least(0),
+        default=None,
+        metavar="N",
+        help="test sequences per paper condition seen through the sensor model (Jaccard; "
+        "0 = none; default 5, 1 with --quick, 50 with --full)",
+    )
+    p.add_argument(
         "--no-sensor",
-        action="store_true",
+        action="store_const",
+        const=0,
+        dest="sensor",
         help="skip the table of the paper's five conditions seen through the sensor model",
     )
     p.add_argument(
@@ -238,7 +248,7 @@ def settings_from_args(args: argparse.Namespace, parser: argparse.ArgumentParser
         else preset.physics_count,
         named=args.named if args.named is not None else preset.named,
         overhead=args.overhead if args.overhead is not None else preset.overhead,
-        sensor=not args.no_sensor,
+        sensor=args.sensor if args.sensor is not None else preset.sensor,
         benchmark=args.benchmark if args.benchmark is not None else preset.benchmark,
         benchmark_candidates=args.benchmark_candidates,
         objects=objects,

@@ -235,9 +235,10 @@ def _markdown_grasp_success(results: dict) -> list[str]:
     return [
         f"## {GRASP_SUCCESS_TITLE}",
         "",
-        f"The first {cfg['physics_count']} grasped sequences per condition and split; each cell "
-        "gives held/tested. Every row's grasp is executed the same way on the true object: from "
-        "the pre-grasp pose the hand moves in until it touches (guarded move), closes, lifts "
+        f"The first {cfg['physics_count']} grasped test sequences per condition (the train "
+        "split is not lift-tested); each cell gives held/tested. Every row's grasp is executed "
+        "the same way on the true object: from the pre-grasp pose the hand moves in until it "
+        "touches (guarded move), closes, lifts "
         "10 cm and shakes. Model rows use the grasp planned on their prediction; the true-mesh "
         "row uses the grasp planned on the true mesh: what a perfect completion would get. It "
         "is an upper bound only as far as the planner's ranking predicts the lift test; where "

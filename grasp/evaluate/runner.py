@@ -33,6 +33,7 @@ from grasp.evaluate.config import (
     MEMORY_OFF,
     NAMED_OBJECTS_TABLE,
     OBJECT_TABLE_CONDITION,
+    OVERHEAD_MIN_ELEVATION_DEG,
     OVERHEAD_TABLE,
     PRIOR,
     SENSOR_TABLE,
@@ -270,6 +271,11 @@ class Evaluator:
             renderer=self.renderer,
         )
         clock.charge("generation")
+        elevation = list(seq.meta["elevation_deg"])
+        if job.table == OVERHEAD_TABLE and max(elevation) < OVERHEAD_MIN_ELEVATION_DEG:
+            # searched, no view from above: nothing of it reaches the overhead table
+            return SequenceResult(job, list(seq.meta["object_ids"]), {}, timings=timings,
+                                  elevation_deg=elevation)
         probs = self.probabilities(seq)
         clock.charge("inference")
         thresholds = {row: self.threshold(row, job.condition) for row in s.rows}
@@ -342,7 +348,7 @@ class Evaluator:
             }
         return SequenceResult(
             job, list(seq.meta["object_ids"]), per_view, grasps, timings, example, physics, ceiling,
-            elevation_deg=list(seq.meta["elevation_deg"]),
+            elevation_deg=elevation,
         )
 
     def _lift_tests(self, job: Job, truth, truth_scene, planned: dict, plan_seed: int) -> dict:
@@ -407,13 +413,13 @@ def make_jobs(settings: Settings) -> list[Job]:
                         index,
                         grasp=index < settings.grasp_count,
                         example=split == "test" and index == 0,
-                        physics=index < min(settings.grasp_count, settings.physics_count),
+                        physics=split == "test"
+                        and index < min(settings.grasp_count, settings.physics_count),
                     )
                 )
-    if settings.sensor:  # the paper's five through the sensor model
-        for condition in (c for c in settings.conditions if c in PAPER_CONDITIONS):
-            for index in range(settings.count):
-                jobs.append(Job(SENSOR_TABLE, condition, "test", index, noise=True, light=True))
+    for condition in (c for c in settings.conditions if c in PAPER_CONDITIONS):
+        for index in range(settings.sensor):  # the paper's five through the sensor model
+            jobs.append(Job(SENSOR_TABLE, condition, "test", index, noise=True, light=True))
     if "tabletop" in settings.conditions:  # searched for overhead views
         for index in range(settings.overhead):
             jobs.append(Job(OVERHEAD_TABLE, "tabletop", "test", index, light=True))
