@@ -184,6 +184,8 @@ def per_object_records(results: list[SequenceResult], settings: Settings) -> lis
             records.append({"table": r.job.table, "index": r.job.index,
                             "object_ids": r.object_ids, "benchmark": r.benchmark})
             continue
+        if not r.per_view:  # an overhead search without a view from above: not completed
+            continue
         for row in settings.rows:
             g = r.grasps.get(row)
             records.append(
