@@ -167,8 +167,8 @@ def tiny_run(tmp_path_factory):
         "1",
         "--overhead",
         "4",  # tabletop test index 3 of seed 3 is seen from 81°
-        "--benchmark",
-        "1",
+        "--benchmark", "1",
+        "--sensor", "1",  # one sequence per paper condition through the sensor model
         "--benchmark-candidates",
         "8",
         "--views",
