@@ -99,7 +99,7 @@ def build_parser() -> argparse.ArgumentParser:
         type=integer_at_least(0),
         default=None,
         metavar="N",
-        help="of the grasped sequences, how many are also lift-tested in pybullet dynamics "
+        help="of the grasped test sequences, how many are also lift-tested in pybullet dynamics "
         "(grasp success; 0 = none; default: 5, 1 with --quick, 10 with --full)",
     )
     p.add_argument(

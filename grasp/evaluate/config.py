@@ -145,7 +145,7 @@ class Preset:
     named: int
     candidates: int
     grasp_count: int  # sequences per (condition, split) that are also grasped
-    physics_count: int  # of the grasped ones, how many are also lift-tested in pybullet
+    physics_count: int  # of the grasped test ones, how many are lift-tested in pybullet
     sensor: int  # test sequences per paper condition seen through the sensor model (SENSOR_TABLE)
     overhead: int  # tabletop test sequences searched for overhead views (OVERHEAD_TABLE)
     benchmark: int  # objects of the grasp-success benchmark (BENCHMARK_TABLE)
