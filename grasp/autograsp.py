@@ -141,6 +141,15 @@ class GraspResult:
         What stopped each finger: ``"distal"`` (distal contact), ``"breakaway-distal"``
         (proximal stopped, then the distal touched), ``"breakaway-limit"`` (proximal stopped, the
         DOF reached its maximum), ``"limit"`` (touched nothing).
+    approach_stop : str
+        What ended the approach: ``"contact"`` (the open hand touched the object or the table),
+        ``"limit"`` (it reached its planned travel untouched: a fingertip grasp whose palm stops
+        above the object) or ``"none"`` (no approach). How a robot executes the grasp follows
+        from it (docs/grasping.md, "Executing a grasp"): a guarded move to ``palm_pose`` that
+        stops at the first touch, and for ``"contact"`` goes on until it touches.
+    hold_probability : float
+        On a table, the planner's estimate that the grasp holds when the object is lifted
+        (:mod:`grasp.lift_model`); NaN where it was not estimated.
     """
 
     success: bool
@@ -154,6 +163,8 @@ class GraspResult:
     travel: float = 0.0
     force_epsilon: float = EPSILON_NO_CLOSURE
     finger_stops: tuple[str, ...] = field(default=("limit", "limit", "limit"))
+    approach_stop: str = "contact"
+    hold_probability: float = math.nan
 
     def joint(self, name: str) -> float:
         """One joint angle (degrees) by name, e.g. ``result.joint("f3_prox")``."""
@@ -178,6 +189,9 @@ class GraspResult:
             "force_epsilon": self.force_epsilon,
             "travel": self.travel,
             "finger_stops": list(self.finger_stops),
+            "approach_stop": self.approach_stop,
+            "hold_probability": None if math.isnan(self.hold_probability)
+            else self.hold_probability,
         }
 
 
@@ -286,8 +300,9 @@ def _approach(
     *,
     max_travel: float,
     step: float,
-) -> tuple[np.ndarray, float] | None:
-    """Back off out of collision, then move along +z to the first contact. None if stuck."""
+) -> tuple[np.ndarray, float, bool] | None:
+    """Back off out of collision, then move along +z to the first contact: the palm pose, the
+    travel and whether it touched. None if stuck."""
     scene = search.scene
     local = scene.kinematics.link_poses(joints_rad)
 
@@ -301,10 +316,10 @@ def _approach(
         if back > MAX_BACKOFF_M:
             return None
     start = -back
-    travel, _ = search.first_contact(
+    travel, hit = search.first_contact(
         poses_at, start, start + max_travel, step=step, speed=1.0, tol=APPROACH_TOL_M
     )
-    return _shift(palm, travel), travel
+    return _shift(palm, travel), travel, bool(hit)
 
 
 def _close_finger(
@@ -402,7 +417,7 @@ def autograsp(
     open_rad = np.radians([spread_deg, 0, 0, spread_deg, 0, 0, 0, 0])
     search = _Search(scene)
 
-    travel = 0.0
+    travel, approach_stop = 0.0, "none"
     if approach:
         moved = _approach(search, palm, open_rad, max_travel=max_travel, step=approach_step)
         if moved is None:
@@ -414,7 +429,8 @@ def autograsp(
                 joints,
                 HandDofs(spread_deg, 0.0, 0.0, 0.0),
             )
-        palm, travel = moved
+        palm, travel, touched = moved
+        approach_stop = "contact" if touched else "limit"
 
     step = math.radians(close_step_deg)
     dofs, joints, stops = [], {}, []
@@ -440,6 +456,7 @@ def autograsp(
         volume=math.nan,
         travel=travel,
         finger_stops=tuple(stops),
+        approach_stop=approach_stop,
     )
     return with_quality(result, scene, mu=mu) if quality else result
 

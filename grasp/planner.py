@@ -13,9 +13,12 @@ of the L1 grasp wrench space; it is chosen to predict the lift test (``grasp.phy
 are distinct grasps: a grasp whose palm pose lies within 1 cm and 10° of a better one is left
 out (:data:`DISTINCT_M`, :data:`DISTINCT_DEG`).
 
-Speed: a distance-field screen (:mod:`grasp.screen`) predicts the approach of every candidate
-at once, and only the most promising (:data:`EXACT_CANDIDATES` a round) get the exact fcl
-autograsp; ``exact=None`` autograsps all of them.
+The search is what it says, whatever ``top_k`` is: a distance-field screen (:mod:`grasp.screen`)
+predicts the approach of all ``n_candidates`` at once and orders them, the most promising
+``budget`` (:data:`AUTOGRASP_BUDGET`) get the exact fcl autograsp, and all of those are ranked;
+``top_k`` only says how many of the ranking come back, so ``plan(m, top_k=1)[0]`` is
+``plan(m, top_k=5)[0]``. The budget is a count, not a time, so that the grasp does not depend on
+the machine's load; ``budget=None`` autograsps every candidate.
 
 A support plane (``support_plane=SupportPlane(...)``, n·x + d = 0 in the mesh's frame, n up, the
 object on its upper side) is the table, an obstacle to the hand as in GraspIt!
@@ -24,6 +27,7 @@ object on its upper side) is the table, an obstacle to the hand as in GraspIt!
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
 from collections.abc import Sequence
@@ -51,8 +55,9 @@ MAX_OBJECT_DIAGONAL_M = 2.0
 #: Two grasps are the same grasp when their palm poses are closer than both of these.
 DISTINCT_M = 0.01
 DISTINCT_DEG = 10.0
-#: Candidates the planner autograsps exactly per round, the screen's most promising first.
-EXACT_CANDIDATES = 4
+#: Candidates the planner autograsps exactly, the screen's most promising first (the search's
+#: budget; docs/grasping.md says how it was chosen).
+AUTOGRASP_BUDGET = 16
 #: Spacing of the hand's points in the planner's screen (metres): 430 points on the hand.
 SCREEN_SPACING_M = 0.02
 
@@ -99,10 +104,13 @@ def palm_touches(result: GraspResult) -> bool:
     return any(c.link == "palm" for c in result.contacts)
 
 
-def rank_key(result: GraspResult) -> tuple[bool, bool, float, float]:
-    """Sort key, best first when sorted descending: force closure, the palm touching the object,
-    the force epsilon, then epsilon. See :func:`rank`."""
-    return (result.success, palm_touches(result), result.force_epsilon, result.epsilon)
+def rank_key(result: GraspResult) -> tuple[bool, float, bool, float, float]:
+    """Sort key, best first when sorted descending: force closure, on a table the estimated
+    probability that the lift holds, the palm touching the object, the force epsilon, then
+    epsilon. See :func:`rank`."""
+    p = result.hold_probability
+    return (result.success, -1.0 if math.isnan(p) else p, palm_touches(result),
+            result.force_epsilon, result.epsilon)
 
 
 def plan(
@@ -114,7 +122,7 @@ def plan(
     spreads_deg: Sequence[float] = DEFAULT_SPREADS_DEG,
     max_travel: float | None = None,
     support_plane: SupportPlane | None = None,
-    exact: int | None = EXACT_CANDIDATES,
+    budget: int | None = AUTOGRASP_BUDGET,
     timings: dict[str, float] | None = None,
 ) -> list[GraspResult]:
     """Plan BarrettHand grasps on ``mesh``: the best ``top_k`` distinct grasps of
@@ -123,9 +131,9 @@ def plan(
     Stages: the candidates (:func:`candidate_poses`, :func:`table_candidates`); a screen that
     predicts, for every candidate at once, where its approach stops and whether the palm is
     what touches (:meth:`grasp.screen.Screen.predict`, a distance field of the mesh); the exact
-    autograsp (approach, close, contacts) of the most promising ``exact`` candidates by that
-    prediction, then of the next ``exact`` while fewer than ``top_k`` distinct force-closure
-    grasps were found; the ranking (:func:`rank`) of those.
+    autograsp (approach, close, contacts) of the most promising ``budget`` candidates by that
+    prediction; the ranking (:func:`rank`) of all of those. ``top_k`` does not change the search:
+    the top grasp is the same for every ``top_k``.
 
     Parameters
     ----------
@@ -136,8 +144,8 @@ def plan(
     seed : int
         Seed of the random candidates; the same seed gives the same plan.
     top_k : int or None
-        How many distinct grasps to return, best first (None: every candidate's result,
-        ranked, near-duplicates included; every candidate is then autograsped).
+        How many distinct grasps to return, best first (None: every autograsped candidate's
+        result, ranked, near-duplicates included).
     spreads_deg : sequence of float
         Spreads the random candidates choose from.
     max_travel : float or None
@@ -145,13 +153,13 @@ def plan(
     support_plane : SupportPlane or None
         The table, in the mesh's frame (default: the scene's): an obstacle to the hand; the
         candidates are then :func:`table_candidates` (none from below).
-    exact : int or None
-        Candidates autograsped exactly per round, most promising first (None: all of them, no
-        screen: the complete ranking, for diagnostics).
+    budget : int or None
+        How many candidates are autograsped exactly, most promising first by the screen (None,
+        or at least ``n_candidates``: all of them, no screen).
     timings : dict or None
         Filled with each stage's seconds ("setup": the collision model and the candidates;
         "screen"; "autograsp"; "rank", with the quality measures) and the counts
-        "screened" and "autograsped".
+        "screened" and "autograsped" (the budget spent).
 
     Returns
     -------
@@ -170,8 +178,8 @@ def plan(
     scene = mesh if isinstance(mesh, CollisionScene) else CollisionScene(check_mesh(mesh))
     if top_k is not None and top_k < 1:
         raise ValueError(f"top_k must be >= 1 or None, got {top_k}")
-    if exact is not None and exact < 1:
-        raise ValueError(f"exact must be >= 1 or None, got {exact}")
+    if budget is not None and budget < 1:
+        raise ValueError(f"budget must be >= 1 or None, got {budget}")
     problem = too_large(scene.mesh)
     if problem is not None:
         raise ValueError(problem)
@@ -185,41 +193,33 @@ def plan(
     else:
         candidates = table_candidates(scene.mesh, support_plane, travel=travel, **options)
     lap("setup")
-    screened = top_k is not None and exact is not None and exact < len(candidates)
+    screened = budget is not None and budget < len(candidates)
     order = screen_order(scene, candidates, travel) if screened else list(range(len(candidates)))
+    order = sorted(order[:budget] if screened else order)  # candidate order breaks ties
     lap("screen")
-    batch = len(order) if not screened else max(exact, top_k)
-    done: dict[int, GraspResult] = {}
-    memo: dict[int, GraspResult] = {}  # id(result) -> scored: each grasp is scored once
-    position = 0
-    while True:
-        for i in order[position : position + batch]:
-            c = candidates[i]
-            limit = travel if c.travel is None else c.travel
-            result = autograsp(
-                scene, c.palm_pose, spread_deg=c.spread_deg, max_travel=limit, quality=False
-            )
-            if support_plane is None or not crosses(support_plane, result):
-                done[i] = result
-        position += batch
-        lap("autograsp")
-        results = [done[i] for i in sorted(done)]  # candidate order breaks ties
-        if top_k is None:  # every candidate's result, ranked (for diagnostics): no dedup
-            best = rank(results, scene)
-        else:
-            best = _best_distinct(results, scene, top_k, memo)
-        lap("rank")
-        enough = top_k is None or sum(g.success for g in best) >= top_k
-        if enough or position >= len(order):
-            if timings is not None:
-                timings.update(stages, screened=len(candidates) if screened else 0,
-                               autograsped=min(position, len(order)))
-            return best
+    results = []
+    for i in order:
+        c = candidates[i]
+        limit = travel if c.travel is None else c.travel
+        result = autograsp(
+            scene, c.palm_pose, spread_deg=c.spread_deg, max_travel=limit, quality=False
+        )
+        if support_plane is None or not crosses(support_plane, result):
+            results.append(result)
+    lap("autograsp")
+    # every autograsped result is ranked; top_k only cuts the list
+    best = rank(results, scene) if top_k is None else _best_distinct(results, scene, top_k)
+    lap("rank")
+    if timings is not None:
+        timings.update(stages, screened=len(candidates) if screened else 0,
+                       autograsped=len(order))
+    return best
 
 
 def screen_order(scene: CollisionScene, candidates: Sequence[Candidate], travel: float):
     """Candidate indices, most promising first by the screen's prediction: approaches that meet
-    the object, then those where the palm touches (power grasps, :func:`rank_key`'s second key),
+    the object (and fingertip grasps, which stop above it by design), then those where the palm
+    touches (power grasps, :func:`rank_key`'s second key),
     then the centre of mass nearest the palm (a short lever); ties in candidate order."""
     palms = np.stack([c.palm_pose for c in candidates])
     spreads = np.array([c.spread_deg for c in candidates])
@@ -229,15 +229,15 @@ def screen_order(scene: CollisionScene, candidates: Sequence[Candidate], travel:
         scene.mesh, spacing=SCREEN_SPACING_M, nearest=True, support_plane=scene.support_plane
     )
     touches, palm, depth = screen.predict(palms, spreads, travel, scene.center)
+    # a fingertip grasp stops above a low object by design: its fingers are what meet it
+    touches |= np.array([c.source == "pinch" for c in candidates])
     return sorted(range(len(candidates)), key=lambda i: (not touches[i], not palm[i], depth[i], i))
 
 
-def _best_distinct(
-    results: Sequence[GraspResult], scene: CollisionScene, top_k: int, memo: dict | None = None
-):
+def _best_distinct(results: Sequence[GraspResult], scene: CollisionScene, top_k: int):
     """The first ``top_k`` distinct grasps of the ranking: rank only as many as needed, widened
     while duplicates among them leave fewer than ``top_k`` (the top one is always distinct)."""
-    width = top_k
+    width, memo = top_k, {}  # each grasp is scored once however often the list widens
     while True:
         best = distinct(rank(results, scene, top_k=width, memo=memo), top_k)
         if len(best) >= top_k or width >= len(results):
@@ -263,11 +263,17 @@ def rank(
     the Ferrari–Canny epsilon. With 64 candidates on the true mesh, the top grasp by epsilon
     alone held in the lift test for 7 of the 10 named objects, by this ranking for 10 (README).
 
-    Ties keep the input order. With ``top_k`` only the grasps that can still enter the top list
-    are scored: force closure (the 6-D hull) is computed in the order of the other keys, which
-    need only the contacts and the palm pose, until ``top_k`` force-closure grasps were found;
-    the returned list is exactly the first ``top_k`` of the full ranking. ``memo`` (id of a
-    result → its scored copy) keeps scores between calls on growing lists of the same results.
+    On a table (``scene.support_plane``) the second key is the lift model's probability that the
+    grasp holds (:mod:`grasp.lift_model`, learned from lift tests on training-split objects: the
+    object's estimated weight against the grip, the grasp's kind, its contacts' heights); every
+    grasp is then scored.
+
+    Ties keep the input order. Without a table, with ``top_k`` only the grasps that can still
+    enter the top list are scored: force closure (the 6-D hull) is computed in the order of the
+    other keys, which need only the contacts and the palm pose, until ``top_k`` force-closure
+    grasps were found; the returned list is exactly the first ``top_k`` of the full ranking.
+    ``memo`` (id of a result → its scored copy) keeps scores between calls on growing lists of
+    the same results.
     """
 
     def cheap(i: int) -> tuple[bool, bool]:  # the keys that need no wrench hull
@@ -275,20 +281,31 @@ def rank(
 
     scored: dict[int, GraspResult] = {}
     found, last = 0, None
+    lazy = top_k is not None and scene.support_plane is None
     for i in sorted(range(len(results)), key=lambda i: (*cheap(i), -i), reverse=True):
-        if top_k is not None and found >= top_k and cheap(i) != last:
+        if lazy and found >= top_k and cheap(i) != last:
             break  # ranks below every force-closure grasp found (ties on the cheap keys go on)
         r = results[i]
         if memo is not None and id(r) in memo:
             scored[i] = memo[id(r)]
         else:
             scored[i] = r if not math.isnan(r.epsilon) else with_quality(r, scene)
+            if scene.support_plane is not None and scored[i].success:
+                scored[i] = _with_hold_probability(scored[i], scene)
             if memo is not None:
                 memo[id(r)] = scored[i]
         if scored[i].success:
             found, last = found + 1, cheap(i)
     ranked = sorted(scored, key=lambda i: (*rank_key(scored[i]), -i), reverse=True)
     return [scored[i] for i in ranked][: len(results) if top_k is None else top_k]
+
+
+def _with_hold_probability(result: GraspResult, scene: CollisionScene) -> GraspResult:
+    """A scored force-closure grasp on a table with the lift model's probability that it holds."""
+    from grasp.lift_model import estimated_mass, features, hold_probability
+
+    x = features(result, scene.mesh, scene.support_plane, mass=estimated_mass(scene.mesh))
+    return dataclasses.replace(result, hold_probability=float(hold_probability(x)[0]))
 
 
 def read_mesh_argument(parser, path, *, scale: float = 1.0) -> trimesh.Trimesh:
@@ -328,8 +345,9 @@ def main(argv: Sequence[str] | None = None) -> None:
     add("--seed", type=int, default=0, help="seed of the candidates")
     add("--top-k", type=int, default=5, help="grasps to print")
     add("--scale", type=float, default=1.0, help="multiply the mesh by this")
-    add("--exact", type=int, default=EXACT_CANDIDATES,
-        help="candidates autograsped exactly per round after the screen (0: all, no screen)")
+    add("--budget", type=int, default=AUTOGRASP_BUDGET,
+        help=f"candidates autograsped exactly, the screen's most promising first (0: all, no "
+        f"screen; default {AUTOGRASP_BUDGET})")
     add("--support-plane", type=_plane_argument, default=None, metavar="NX,NY,NZ,D",
         help="the table the object rests on, n·x + d = 0 in the mesh's frame, n up: an obstacle "
         "to the hand, no approach from below")
@@ -338,7 +356,7 @@ def main(argv: Sequence[str] | None = None) -> None:
     wall, cpu = time.perf_counter(), time.process_time()
     timings: dict[str, float] = {}
     results = plan(mesh, n_candidates=args.candidates, seed=args.seed, top_k=args.top_k,
-                   support_plane=args.support_plane, exact=None if args.exact == 0 else args.exact,
+                   support_plane=args.support_plane, budget=args.budget or None,
                    timings=timings)
     wall, cpu = time.perf_counter() - wall, time.process_time() - cpu
     print(f"{args.mesh.name}: {len(mesh.faces)} faces, {args.candidates} candidates in "

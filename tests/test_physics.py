@@ -116,7 +116,7 @@ def test_guarded_approach_stops_at_the_true_surface(box, cache):
     grasp = autograsp(predicted, side_pose([-0.15, 0.0, 0.0]), spread_deg=0.0)
     assert grasp.palm_pose[0, 3] == pytest.approx(-0.02, abs=1e-4)
     settings = LiftSettings()
-    result = lift_test(box, grasp, approach="contact", shake=False, cache_dir=cache)
+    result = lift_test(box, grasp, approach="guarded", shake=False, cache_dir=cache)
     step = settings.approach_speed * settings.time_step
     assert result.travel == pytest.approx(settings.pregrasp_backoff - 0.01, abs=2 * step)
     assert result.success, result.reason

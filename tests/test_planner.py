@@ -11,9 +11,9 @@ from scipy.spatial.transform import Rotation
 from grasp.autograsp import autograsp
 from grasp.candidates import STANDOFF_M, candidate_poses, principal_axes
 from grasp.planner import (
+    AUTOGRASP_BUDGET,
     DISTINCT_DEG,
     DISTINCT_M,
-    EXACT_CANDIDATES,
     SCREEN_SPACING_M,
     depth_of,
     distinct,
@@ -38,7 +38,7 @@ def brick() -> trimesh.Trimesh:
 
 @pytest.fixture(scope="module")
 def brick_plan(brick):
-    return plan(brick, n_candidates=32, seed=0, top_k=None)
+    return plan(brick, n_candidates=32, seed=0, top_k=None, budget=None)
 
 
 def test_principal_axes_of_a_box_are_its_edges(brick):
@@ -100,7 +100,7 @@ def test_plan_is_ranked_by_closure_palm_force_epsilon(brick_plan):
 def test_plan_is_deterministic_and_top_k_are_the_best_distinct(brick, brick_plan):
     """Without the screen, the lazily scored top-k are exactly the full ranking's first k
     distinct grasps."""
-    again = plan(CollisionScene(brick), n_candidates=32, seed=0, top_k=5, exact=None)
+    again = plan(CollisionScene(brick), n_candidates=32, seed=0, top_k=5, budget=None)
     assert len(again) == 5
     for a, b in zip(again, distinct(brick_plan)[:5], strict=True):
         assert a.joints_deg == b.joints_deg
@@ -108,12 +108,13 @@ def test_plan_is_deterministic_and_top_k_are_the_best_distinct(brick, brick_plan
         assert (a.epsilon, a.volume) == (b.epsilon, b.volume)
 
 
-def test_screened_plan_autograsps_few_and_returns_grasps_of_the_full_plan(brick, brick_plan):
-    """With the screen, only the most promising candidates are autograsped; what comes back
-    is the same grasps the exact planner finds for those candidates, distinct and deterministic."""
+def test_screened_plan_autograsps_its_budget_and_returns_grasps_of_the_full_plan(brick, brick_plan):
+    """With the screen, the budget's most promising candidates are autograsped, whatever top_k;
+    what comes back is the same grasps the exact planner finds for those candidates, distinct
+    and deterministic."""
     timings: dict[str, float] = {}
     top = plan(brick, n_candidates=32, seed=0, top_k=3, timings=timings)
-    assert timings["screened"] == 32 and timings["autograsped"] == EXACT_CANDIDATES
+    assert timings["screened"] == 32 and timings["autograsped"] == AUTOGRASP_BUDGET
     assert set(timings) >= {"setup", "screen", "autograsp", "rank"}
     assert len(top) == 3 and all(g.success for g in top)
     assert distinct(top) == top
@@ -125,6 +126,33 @@ def test_screened_plan_autograsps_few_and_returns_grasps_of_the_full_plan(brick,
     assert [g.joints_deg for g in again] == [g.joints_deg for g in top]
     # the screen puts the best of the full ranking among the candidates it autograsps
     assert top[0].force_epsilon >= 0.9 * brick_plan[0].force_epsilon
+    few: dict[str, float] = {}
+    plan(brick, n_candidates=32, seed=0, top_k=1, budget=5, timings=few)
+    assert few["autograsped"] == 5
+
+
+@pytest.mark.parametrize("table", [False, True])
+def test_the_top_grasp_does_not_depend_on_top_k(table):
+    """The search is the same whatever top_k asks: plan(top_k=1)[0] is plan(top_k=5)[0] (and
+    the top_k=5 list starts the top_k=10 one), on random primitives, free or on a table."""
+    rng = np.random.default_rng(11 + table)
+    makers = [lambda e: trimesh.creation.box(e), lambda e: trimesh.creation.capsule(e[2], e[0] / 2),
+              lambda e: trimesh.creation.cylinder(e[0] / 2, e[2]), lambda e: trimesh.creation.cone(
+                  e[0] / 2, e[2]), lambda e: trimesh.creation.icosphere(2, e[0] / 2)]
+    for k in range(10):
+        extents = rng.uniform(0.02, 0.16, 3)
+        mesh = makers[k % len(makers)](extents)
+        mesh.apply_transform(trimesh.transformations.random_rotation_matrix(rng.random(3)))
+        plane = None
+        if table:
+            mesh.apply_translation([0.0, 0.0, -mesh.bounds[0, 2]])
+            plane = SupportPlane(np.array([0.0, 0.0, 1.0]), 0.0)
+        one = plan(mesh, n_candidates=32, seed=k, top_k=1, support_plane=plane)
+        five = plan(mesh, n_candidates=32, seed=k, top_k=5, support_plane=plane)
+        ten = plan(mesh, n_candidates=32, seed=k, top_k=10, support_plane=plane)
+        assert one[0].joints_deg == five[0].joints_deg, k
+        np.testing.assert_array_equal(one[0].palm_pose, five[0].palm_pose)
+        assert [g.joints_deg for g in five] == [g.joints_deg for g in ten[:len(five)]], k
 
 
 def test_screen_predicts_where_the_approach_stops_and_what_touches(brick):
@@ -178,13 +206,13 @@ def _angle_deg(a: np.ndarray, b: np.ndarray) -> float:
 def test_top_k_are_distinct_grasps():
     """A cube's symmetric candidates land on the same palm poses; top-k never repeats one."""
     cube = trimesh.creation.box(extents=(0.06, 0.06, 0.12))
-    top = plan(cube, n_candidates=64, seed=0, top_k=6)
+    top = plan(cube, n_candidates=64, seed=0, top_k=6, budget=None)
     assert len(top) == 6
     for i, a in enumerate(top):
         for b in top[:i]:
             far = np.linalg.norm(a.palm_pose[:3, 3] - b.palm_pose[:3, 3]) >= DISTINCT_M
             assert far or _angle_deg(a.palm_pose, b.palm_pose) >= DISTINCT_DEG
-    everything = plan(cube, n_candidates=64, seed=0, top_k=None)
+    everything = plan(cube, n_candidates=64, seed=0, top_k=None, budget=None)
     assert len(distinct(everything)) < len(everything)  # there were duplicates to leave out
 
 

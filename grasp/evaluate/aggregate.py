@@ -182,7 +182,7 @@ def per_object_records(results: list[SequenceResult], settings: Settings) -> lis
     for r in results:
         if r.job.table == BENCHMARK_TABLE:
             records.append({"table": r.job.table, "index": r.job.index,
-                            "object_ids": r.object_ids, "benchmark": r.benchmark})
+                            "object_ids": r.object_ids, "benchmark": r.benchmark["rows"]})
             continue
         if not r.per_view:  # an overhead search without a view from above: not completed
             continue
@@ -282,8 +282,8 @@ def benchmark_table(results: list[SequenceResult]) -> dict | None:
     mine = [r for r in results if r.job.table == BENCHMARK_TABLE]
     if not mine:
         return None
-    rows = [row for row in BENCHMARK_ROWS if any(row in r.benchmark for r in mine)]
-    return summarise([r.benchmark for r in mine], rows)
+    rows = [row for row in BENCHMARK_ROWS if any(row in r.benchmark["rows"] for r in mine)]
+    return summarise([r.benchmark["rows"] for r in mine], rows)
 
 
 def build_results(results: list[SequenceResult], settings: Settings, wall: dict) -> dict:
@@ -309,7 +309,7 @@ def build_results(results: list[SequenceResult], settings: Settings, wall: dict)
         "sensor_noise": sensor_table(results, settings, main),
         "tabletop_overhead": overhead_table(results, settings),
         "grasp_benchmark": benchmark_table(results),
-        "grasp_benchmark_objects": [r.object_ids[0] for r in results
+        "grasp_benchmark_objects": [r.benchmark for r in results
                                     if r.job.table == BENCHMARK_TABLE],
         "per_object": per_object_records(results, settings),
         "config": config_dict(settings),

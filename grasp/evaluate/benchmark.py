@@ -16,7 +16,11 @@ shake; :func:`grasp.physics.lift_test`):
   voxelized in the last view's grid (no learning).
 
 results.json's ``grasp_benchmark[row] = {"held", "tested", "ci95": [lo, hi], "reasons"}``: held out
-of tested with the Wilson score interval, and how often each failure reason occurred.
+of tested with the Wilson score interval, and how often each failure reason occurred; and
+``grasp_benchmark_objects``, one record per object (:func:`object_record`): its id, size and mass,
+and per row whether it held, why, the grasp's kind, the planned and the executed finger joints.
+The planner plans the execution (guarded, :func:`grasp.physics.lift_test`), so on the true mesh
+the two agree but for the dynamics; where they differ by much, the plan was not what happened.
 """
 
 from __future__ import annotations
@@ -73,15 +77,23 @@ class Scene:
     intrinsics: G.Intrinsics
 
 
-def make_scene(object_id: str, index: int, seed: int, renderer) -> Scene:
-    """Place ``object_id`` on the table and render the pan; deterministic in its arguments."""
-    from completion.render import SensorModel, look_at
-    from completion.scenes import stable_pose, table_mesh
+def resting_object(object_id: str, index: int, seed: int):
+    """The benchmark's object ``index`` resting on the table z = 0 (a stable pose drawn from the
+    seed), and the generator the rest of its scene draws from."""
+    from completion.scenes import stable_pose
 
     rng = np.random.default_rng([seed, zlib.crc32(b"benchmark/scene"), index])
     mesh = load_object(object_id)
     pose, _ = stable_pose(mesh, object_id, rng)
-    world = mesh.copy().apply_transform(pose)
+    return mesh.copy().apply_transform(pose), rng
+
+
+def make_scene(object_id: str, index: int, seed: int, renderer) -> Scene:
+    """Place ``object_id`` on the table and render the pan; deterministic in its arguments."""
+    from completion.render import SensorModel, look_at
+    from completion.scenes import table_mesh
+
+    world, rng = resting_object(object_id, index, seed)
     lo, hi = world.bounds
     target = (lo + hi) / 2
     distance, elevation = rng.uniform(0.45, 0.8), np.radians(rng.uniform(45.0, 90.0))
@@ -135,9 +147,20 @@ def completion_mesh(scene: Scene, source: str, views: int, models: dict, thresho
         return None, camera
 
 
+def grasp_kind(grasp, up: np.ndarray = TABLE[:3]) -> str:
+    """"power" (the palm touches) or "fingertip", "from above" (within 45° of straight down) or
+    "from the side"."""
+    from grasp.planner import palm_touches
+
+    above = float(-np.asarray(grasp.palm_pose)[:3, 2] @ up) >= np.cos(np.radians(45.0))
+    return (f"{'power' if palm_touches(grasp) else 'fingertip'}, "
+            f"{'from above' if above else 'from the side'}")
+
+
 def run_object(scene: Scene, models: dict, thresholds: dict, rows, *, candidates: int,
                seed: int) -> dict[str, dict]:
-    """row -> {"held": bool, "reason": str} for one object."""
+    """row -> {"held", "reason", "kind", "planned_joints_deg", "executed_joints_deg",
+    "hold_probability", "palm_pose"} for one object (the palm pose in the world frame)."""
     from grasp.physics import lift_test
     from grasp.planner import plan
     from grasp.table import SupportPlane
@@ -156,12 +179,29 @@ def run_object(scene: Scene, models: dict, thresholds: dict, rows, *, candidates
         grasps = plan(mesh, n_candidates=candidates, seed=seed, top_k=1,
                       support_plane=table.transformed(camera))
         if not grasps or not grasps[0].success:
-            out[row] = {"held": False, "reason": "no grasp planned"}
+            why = grasps[0].reason if grasps else "no candidate"
+            out[row] = {"held": False, "reason": f"no grasp planned ({why})"}
             continue
         world = dataclasses.replace(grasps[0], palm_pose=camera @ grasps[0].palm_pose)
-        result = lift_test(scene.mesh, world, seed=seed, table=True, approach="contact")
-        out[row] = {"held": bool(result.success), "reason": result.reason}
+        result = lift_test(scene.mesh, world, seed=seed, table=True, approach="guarded")
+        p = world.hold_probability
+        out[row] = {
+            "held": bool(result.success), "reason": result.reason, "kind": grasp_kind(world),
+            "planned_joints_deg": np.round(world.joints_deg, 2).tolist(),
+            "executed_joints_deg": np.round(result.joints_deg, 2).tolist(),
+            "hold_probability": None if np.isnan(p) else round(float(p), 4),
+            "palm_pose": np.round(world.palm_pose, 6).tolist(),
+        }
     return out
+
+
+def object_record(object_id: str, mesh: trimesh.Trimesh, rows: dict[str, dict]) -> dict:
+    """results.json's ``grasp_benchmark_objects`` entry: the object, its size (m, the extents
+    of its box on the table), its mass (kg, at the lift test's density) and its rows."""
+    from grasp.lift_model import estimated_mass
+
+    return {"id": object_id, "size_m": np.round(mesh.extents, 4).tolist(),
+            "mass_kg": round(estimated_mass(mesh), 4), "rows": rows}
 
 
 def wilson(held: int, tested: int, z: float = 1.96) -> list[float]:
@@ -191,5 +231,7 @@ def summarise(records: list[dict[str, dict]], rows) -> dict:
 
 
 def _reason_kind(reason: str) -> str:
-    """A lift test's reason without its numbers, so that alike failures count together."""
-    return reason.split(",")[0] if reason.startswith("the object left the hand") else reason
+    """A reason without its numbers and details, so that alike failures count together."""
+    if reason.startswith("the object left the hand"):
+        return reason.split(",")[0]
+    return reason.split(" (")[0] if reason.startswith("no grasp planned") else reason

@@ -5,6 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
+import trimesh
 
 from completion import grid as G
 from completion.bullet import quiet_fds
@@ -111,14 +112,66 @@ def write_figures(results: dict, raw: list[SequenceResult], out: Path) -> list[P
         plt.close(fig)
         written.append(path)
 
-    path = _grasp_figure(raw, out, plt)
-    if path is not None:
-        written.append(path)
+    for path in (_grasp_figure(raw, out, plt),
+                 _benchmark_failures_figure(raw, out, plt, seed=results["config"]["seed"])):
+        if path is not None:
+            written.append(path)
     return written
 
 
 #: Examples shown in grasps.png (main table first: camera pan, hiding, reveal).
 GRASP_FIGURE_EXAMPLES = 3
+
+
+#: Failed true-mesh grasps of the benchmark shown in benchmark_failures.png, at most.
+FAILURE_FIGURE_EXAMPLES = 12
+
+
+def _benchmark_failures_figure(
+    raw: list[SequenceResult], out: Path, plt, *, seed: int
+) -> Path | None:
+    """benchmark_failures.png: the benchmark's failed true-mesh grasps, each the object on its
+    table (a green patch) and the hand as planned, with why the lift test failed."""
+    from grasp.autograsp import GraspResult, HandDofs, HandJoints
+    from grasp.evaluate.benchmark import resting_object
+    from grasp.render import render_grasp
+
+    failed = [r for r in raw if r.benchmark and "true_mesh" in r.benchmark["rows"]
+              and not r.benchmark["rows"]["true_mesh"]["held"]][:FAILURE_FIGURE_EXAMPLES]
+    if not failed:
+        return None
+    cols = min(4, len(failed))
+    rows = -(-len(failed) // cols)
+    fig, axes = plt.subplots(rows, cols, figsize=(3.2 * cols, 3.6 * rows), squeeze=False,
+                             layout="constrained")
+    for ax in axes.flat:
+        ax.axis("off")
+    for ax, r in zip(axes.flat, failed, strict=False):
+        record = r.benchmark["rows"]["true_mesh"]
+        mesh, _ = resting_object(r.object_ids[0], r.job.index, seed)
+        title = f"{r.object_ids[0]} ({r.benchmark['mass_kg']:.2f} kg)\n{record['reason']}"
+        ax.set_title(title[:110], fontsize=7, wrap=True)
+        if "palm_pose" not in record:  # nothing planned: the object alone
+            ax.text(0.5, 0.5, "no grasp planned", ha="center", va="center", fontsize=8)
+            continue
+        lo, hi = mesh.bounds
+        patch = trimesh.creation.box([1.6 * (hi - lo)[0] + 0.04, 1.6 * (hi - lo)[1] + 0.04,
+                                      0.004])
+        patch.apply_translation([(lo[0] + hi[0]) / 2, (lo[1] + hi[1]) / 2, -0.002])
+        patch.visual.face_colors = [90, 170, 90, 255]
+        hand = GraspResult(False, record["reason"], np.asarray(record["palm_pose"]),
+                           HandJoints(*record["planned_joints_deg"]),
+                           HandDofs(record["planned_joints_deg"][0], 0.0, 0.0, 0.0))
+        with quiet_fds(1):
+            image = render_grasp(trimesh.util.concatenate([mesh, patch]), hand, width=260,
+                                 height=260)[0]
+        ax.imshow(image)
+    fig.suptitle("Benchmark: the true-mesh grasps that failed the lift test (hand as planned)",
+                 fontsize=9)
+    path = out / "benchmark_failures.png"
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+    return path
 
 
 def _grasp_result(summary: dict):

@@ -5,6 +5,8 @@ from __future__ import annotations
 
 from collections.abc import Iterable
 
+import numpy as np
+
 from completion.scenes import SINGLE_OBJECT_CONDITIONS
 from grasp.evaluate.config import (
     CONDITION_LABELS,
@@ -325,16 +327,38 @@ def markdown_benchmark(results: dict) -> list[str]:
         "standing on the table: guarded approach, close, lift 10 cm, shake. The interval is "
         "Wilson's 95 % score interval. The true-mesh row is what a perfect completion would get.",
         "",
-        "| Row | Held | Success | 95 % interval | Failures |",
-        "|---|---|---|---|---|",
+        "| Row | Held | Success | 95 % interval | Planned vs executed joints | Failures |",
+        "|---|---|---|---|---|---|",
     ]
+    records = results["grasp_benchmark_objects"]
     for row, cell in block.items():
         failures = "; ".join(f"{n}× {reason}" for reason, n in cell["reasons"].items()) or "—"
         rate = cell["held"] / cell["tested"] if cell["tested"] else None
+        gap = _joint_gap(records, row)
         lines.append(f"| {BENCHMARK_LABELS[row]} | {cell['held']}/{cell['tested']} | "
                      f"{_fmt(rate, GRASP_SUCCESS)} | {100 * cell['ci95'][0]:.0f}–"
-                     f"{100 * cell['ci95'][1]:.0f}% | {failures} |")
-    return [*lines, ""]
+                     f"{100 * cell['ci95'][1]:.0f}% | {gap} | {failures} |")
+    lines += ["", "Planned vs executed joints: the median over objects of the mean absolute "
+              "difference between the finger joints the planner predicted and those the lift "
+              "test's hand ended with (8 joints, degrees).", ""]
+    failed = [r for r in records if not r["rows"].get("true_mesh", {"held": True})["held"]]
+    if failed:
+        lines += ["Failures of the true-mesh row (benchmark_failures.png shows them):", "",
+                  "| Object | Size (cm) | Mass (kg) | Grasp | Why |", "|---|---|---|---|---|"]
+        for r in failed:
+            o = r["rows"]["true_mesh"]
+            size = " × ".join(f"{100 * v:.0f}" for v in r["size_m"])
+            lines.append(f"| {r['id']} | {size} | {r['mass_kg']:.2f} | {o.get('kind', '—')} | "
+                         f"{o['reason']} |")
+        lines.append("")
+    return lines
+
+
+def _joint_gap(records: list[dict], row: str) -> str:
+    """The median over objects of the mean |planned − executed| finger joint (degrees)."""
+    gaps = [float(np.mean(np.abs(np.subtract(o["planned_joints_deg"], o["executed_joints_deg"]))))
+            for o in (r["rows"].get(row, {}) for r in records) if "executed_joints_deg" in o]
+    return f"{np.median(gaps):.1f}°" if gaps else "—"
 
 
 def how_to_read(results: dict) -> list[str]:

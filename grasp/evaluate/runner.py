@@ -102,7 +102,8 @@ class SequenceResult:
     # below_plane -> the target's share below the support plane (scenes with one)
     ceiling: dict[str, list[float]] = field(default_factory=dict)
     elevation_deg: list[float] = field(default_factory=list)  # the camera's, per view
-    benchmark: dict[str, dict] = field(default_factory=dict)  # row -> {"held", "reason"}
+    # the benchmark's object record (grasp.evaluate.benchmark.object_record): "rows": row -> outcome
+    benchmark: dict = field(default_factory=dict)
 
 
 # ------------------------------------------------------------------------------ fusion baseline
@@ -249,7 +250,8 @@ class Evaluator:
             outcome = b.run_object(scene, self.models, self.thresholds, self.benchmark_rows(),
                                    candidates=self.settings.benchmark_candidates, seed=seed)
         clock.charge("benchmark")
-        return SequenceResult(job, [object_id], {}, timings=timings, benchmark=outcome)
+        record = b.object_record(object_id, scene.mesh, outcome)
+        return SequenceResult(job, [object_id], {}, timings=timings, benchmark=record)
 
     def evaluate(self, job: Job) -> SequenceResult:
         from completion.scenes import make_sequence
@@ -366,7 +368,7 @@ class Evaluator:
             if grasp is None:
                 return {"success": False, "reason": "no grasp planned"}
             with quiet_fds(1):
-                r = lift_test(truth, grasp, seed=seed, approach="contact")
+                r = lift_test(truth, grasp, seed=seed, approach="guarded")
             return {
                 "success": bool(r.success),
                 "reason": r.reason,

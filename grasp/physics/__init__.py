@@ -20,7 +20,8 @@ says whether the object stays in the hand. One trial, in its own DIRECT pybullet
    Finger–finger and finger–palm collisions are off, as in autograsp.
    It starts open, at the grasp's spread, ``pregrasp_backoff`` behind the palm pose along the
    approach axis (:func:`grasp.autograsp.pregrasp_pose`) and moves to the planned pose, or, with
-   ``approach="contact"``, until it first touches the object.
+   ``approach="guarded"`` (how a robot executes a plan, and the benchmark's), toward it until it
+   first touches the object or the table, on past it for a plan whose approach ended touching.
 3. **Close**: every finger DOF rises at ``close_speed``; J2 = DOF and J3 = DOF/3 under position
    control with torque limits. The controller (:meth:`DynamicWorld.drive_fingers`) watches each
    proximal joint's lag and velocity: stalled while its distal still moves is a proximal contact,

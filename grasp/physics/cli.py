@@ -28,7 +28,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--density", type=float, default=DENSITY_KG_M3, help="kg/m³")
     parser.add_argument("--table", action="store_true", help="object on a table")
     parser.add_argument(
-        "--approach", choices=APPROACHES, default="planned", help="to the planned pose or to touch"
+        "--approach", choices=APPROACHES, default="planned",
+        help="planned: to the planned pose (default); guarded: toward it, stopping at the first "
+        "touch, as a robot executes a plan",
     )
     args = parser.parse_args(argv)
     try:

@@ -102,12 +102,15 @@ def lift_test(
     table : bool
         Stand the object on a table (at its lowest point) with gravity on from the start, instead
         of floating it on a weak support until the hand has closed.
-    approach : "planned" or "contact"
+    approach : "planned" or "guarded"
         From the pre-grasp pose (``settings.pregrasp_backoff`` behind the palm pose, hand open),
-        "planned" moves the palm to ``grasp.palm_pose`` exactly (open loop, as for a grasp planned
-        on this mesh); "contact" moves along the approach axis until the hand first touches the
-        object, at most ``settings.overtravel`` past the planned pose (a guarded move, for a grasp
-        planned on another mesh, e.g. a predicted shape; DESIGN.md §7's re-approach).
+        "planned" moves the palm to ``grasp.palm_pose`` exactly (open loop); "guarded" is how a
+        robot with a wrist force-torque sensor executes a plan, and what the planner plans
+        (docs/grasping.md, "Executing a grasp"): toward ``grasp.palm_pose``, stopping where the
+        hand first touches the object or the table; a grasp whose planned approach ended on
+        touching (``grasp.approach_stop == "contact"``) goes on past the planned pose, at most
+        ``settings.overtravel``, until it touches (for a grasp planned on another mesh, e.g. a
+        completion, whose surface lies further than the plan's).
     settings : LiftSettings
         Time step, torque limits, speeds, shake and tolerances.
     params : BarrettParams
@@ -151,10 +154,12 @@ def lift_test(
         world.place_hand(palm, open_joints, offset=backoff)
         fingers = world.fingers()
         # approach from the pre-grasp pose, hand open
-        if approach == "planned":  # to the planned palm pose, smooth start and stop
+        guarded = approach == "guarded"
+        if not guarded or grasp.approach_stop != "contact":
+            # to the planned palm pose, smooth start and stop
             n = max(1, math.ceil(s.pregrasp_backoff / s.approach_speed / s.time_step))
             path = [backoff * (1.0 - _smooth(i / n)) for i in range(1, n + 1)]
-        else:  # guarded: along the approach axis until the first touch, at constant speed
+        else:  # on until the first touch, at constant speed, at most overtravel past the plan
             reach = s.pregrasp_backoff + s.overtravel
             n = max(1, math.ceil(reach / s.approach_speed / s.time_step))
             path = [backoff + reach * (i / n) * palm[:3, 2] for i in range(1, n + 1)]
@@ -163,7 +168,7 @@ def lift_test(
             world.hold_spread(spread)
             world.hold_fingers_open(fingers)
             world.step()
-            if approach == "contact" and world.n_contacts():
+            if guarded and world.touches():
                 offset = world.hand_offset()  # stop where the hand is (it trails its target)
                 world.move_hand(offset)
                 break

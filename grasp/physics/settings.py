@@ -21,7 +21,7 @@ VHACD_OPTIONS = {
     "minVolumePerCH": 0.0001,
 }
 #: How the hand reaches the grasp pose (see :func:`lift_test`).
-Approach = Literal["planned", "contact"]
+Approach = Literal["planned", "guarded"]
 APPROACHES: tuple[str, ...] = get_args(Approach)
 #: Standard gravity (m/s²), along world −z.
 GRAVITY = 9.81
@@ -40,7 +40,7 @@ class LiftSettings:
     hand_force: float = 1000.0  # max force of the constraint carrying the hand (N)
     pregrasp_backoff: float = 0.05  # start this far behind the grasp pose, hand open (m)
     approach_speed: float = 0.10  # m/s
-    overtravel: float = 0.05  # a guarded approach goes on this far past the planned pose (m)
+    overtravel: float = 0.05  # a guarded approach that planned to touch goes on this far (m)
     # fingers
     close_speed: float = 1.0  # finger DOF speed while closing (rad/s)
     proximal_torque: float = 4.0 / 3.0  # J2 torque limit (N·m): the J3 limit × 125 / 93.75

@@ -226,6 +226,15 @@ class DynamicWorld:
         """Number of hand–object contact points."""
         return len(self.client.getContactPoints(self.hand_id, self.object_id))
 
+    def touches(self) -> bool:
+        """Whether the hand touches the object or the table (what a wrist force-torque sensor
+        feels during a guarded move)."""
+        if self.n_contacts():
+            return True
+        return self.table_id is not None and bool(
+            self.client.getContactPoints(self.hand_id, self.table_id)
+        )
+
     def hold_object(self, force: float | None) -> None:
         """Hold the object where it is by a constraint of at most ``force`` (N); None frees it.
 
