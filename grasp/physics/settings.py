@@ -48,6 +48,9 @@ class LiftSettings:
     spread_torque: float = 2.0  # spread torque limit (N·m)
     position_gain: float = 0.3  # pybullet POSITION_CONTROL gains
     velocity_gain: float = 1.0
+    # the worm drives do not turn back: a joint pushed open holds (hands/barrett/README.md)
+    lock_slack: float = math.radians(0.5)
+    lock_torque: float = 20.0  # N·m, far above what the object's weight puts on a joint
     stall_lag: float = math.radians(2.0)  # a joint this far behind its target …
     stall_speed: float = 0.1  # … and slower than this (rad/s) …
     stall_steps: int = 4  # … for this many steps in a row has stalled

@@ -7,7 +7,7 @@ import contextlib
 import math
 import tempfile
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -45,6 +45,7 @@ class _Finger:
     stop: str = "timeout"
     prox_count: int = 0  # consecutive stalled steps
     dist_count: int = 0
+    peak: list = field(default_factory=lambda: [0.0, 0.0])  # most closed J2, J3 so far
 
     @property
     def done(self) -> bool:
@@ -338,6 +339,11 @@ class DynamicWorld:
         distal still moves breaks away: J2 then presses with its torque limit and the distal
         target keeps following DOF/3. A stalled distal stops the finger: both joints press with
         their limits. A finger whose DOF reaches its maximum untouched holds there ("limit").
+
+        Neither joint opens under load: both are driven through single-start worms into worm
+        gears (Barrett's BH8-280 drivetrain, hands/barrett/README.md), which the object cannot
+        turn back. A joint pushed more than ``lock_slack`` open from the most closed angle it
+        reached is held there with ``lock_torque``.
         """
         s, c = self.settings, self.client
         ratio = self.params.distal_ratio
@@ -372,6 +378,10 @@ class DynamicWorld:
                 self._press(finger.dist, s.distal_torque)
             else:
                 self._position(finger.dist, ratio * finger.dof, s.distal_torque)
+            for k, (joint, q) in enumerate(((finger.prox, q2), (finger.dist, q3))):
+                finger.peak[k] = max(finger.peak[k], q)
+                if q < finger.peak[k] - s.lock_slack:  # back-driven: the worm holds it
+                    self._position(joint, finger.peak[k], s.lock_torque)
 
     def _position(self, joint: int, target: float, torque: float) -> None:
         self.client.setJointMotorControl2(
