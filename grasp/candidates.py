@@ -174,6 +174,14 @@ def table_candidates(
     return _clear_of_table(list(unique.values())[:n_candidates], plane, travel)
 
 
+def footprint(mesh: trimesh.Trimesh, plane: SupportPlane) -> tuple[float, float, float]:
+    """The object's extent across its footprint's short axis, along its long axis, and its
+    height above ``plane`` (metres)."""
+    long, short = _footprint_axes(mesh, plane)
+    v = np.asarray(mesh.vertices)
+    return float(np.ptp(v @ short)), float(np.ptp(v @ long)), float(plane.height(v).max())
+
+
 def _footprint_axes(mesh: trimesh.Trimesh, plane: SupportPlane) -> np.ndarray:
     """(2, 3) unit vectors in ``plane``: the object's footprint's long axis, then the short one
     (area-weighted PCA of the faces projected on the plane; largest component positive)."""

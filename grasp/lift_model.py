@@ -51,6 +51,8 @@ FEATURES: tuple[str, ...] = (
     "from_above",  # −approach · table normal: 1 straight down, 0 from the side
     "fingers",  # fingers with a contact (0–3)
     "breakaways",  # fingers whose proximal link stopped first
+    "dof_gap",  # largest minus smallest finger DOF at the stop (degrees / 100): the first finger
+    # to touch pushes the object alone until the others arrive
     "lowest_contact",  # lowest contact's height above the centre of mass (m)
     "mean_contact",  # mean contact height above the centre of mass (m)
     "size",  # the object's largest extent (m)
@@ -83,6 +85,7 @@ def features(result, mesh, plane: SupportPlane, *, mass: float | None = None) ->
         float(-pose[:3, 2] @ up),
         float(len(fingers)),
         float(sum(s.startswith("breakaway") for s in result.finger_stops)),
+        float(np.ptp(np.asarray(result.dofs_deg)[1:])) / 100.0,
         float(heights.min()),
         float(heights.mean()),
         float(np.max(mesh.extents)),

@@ -41,9 +41,10 @@ from grasp.candidates import (
     STANDOFF_M,
     Candidate,
     candidate_poses,
+    footprint,
     table_candidates,
 )
-from grasp.screen import Screen
+from grasp.screen import Screen, fingertip_span
 from grasp.sim import CollisionScene, check_mesh
 from grasp.table import SupportPlane, crosses
 from hands.barrett import JOINT_NAMES
@@ -60,6 +61,10 @@ DISTINCT_DEG = 10.0
 AUTOGRASP_BUDGET = 16
 #: Spacing of the hand's points in the planner's screen (metres): 430 points on the hand.
 SCREEN_SPACING_M = 0.02
+#: On a table, a force-closure grasp the lift model gives less than this chance to hold is a
+#: failure that says so (:mod:`grasp.lift_model`; on the benchmark's true meshes every top grasp
+#: below it dropped).
+HOLD_THRESHOLD = 0.5
 
 def distinct(grasps: Sequence[GraspResult], k: int | None = None) -> list[GraspResult]:
     """The grasps in order, leaving out each one whose palm pose is within :data:`DISTINCT_M`
@@ -209,6 +214,10 @@ def plan(
     lap("autograsp")
     # every autograsped result is ranked; top_k only cuts the list
     best = rank(results, scene) if top_k is None else _best_distinct(results, scene, top_k)
+    if support_plane is not None and best and not best[0].success:
+        limits = table_limits(scene.mesh, support_plane)
+        if limits is not None:
+            best[0] = dataclasses.replace(best[0], reason=f"{best[0].reason}; {limits}")
     lap("rank")
     if timings is not None:
         timings.update(stages, screened=len(candidates) if screened else 0,
@@ -301,11 +310,29 @@ def rank(
 
 
 def _with_hold_probability(result: GraspResult, scene: CollisionScene) -> GraspResult:
-    """A scored force-closure grasp on a table with the lift model's probability that it holds."""
-    from grasp.lift_model import estimated_mass, features, hold_probability
+    """A scored force-closure grasp on a table with the lift model's probability that it holds;
+    below :data:`HOLD_THRESHOLD` it is a failure that says so."""
+    from grasp.lift_model import DENSITY_KG_M3, estimated_mass, features, hold_probability
 
-    x = features(result, scene.mesh, scene.support_plane, mass=estimated_mass(scene.mesh))
-    return dataclasses.replace(result, hold_probability=float(hold_probability(x)[0]))
+    mass = estimated_mass(scene.mesh)
+    p = float(hold_probability(features(result, scene.mesh, scene.support_plane, mass=mass))[0])
+    if p >= HOLD_THRESHOLD or math.isnan(p):
+        return dataclasses.replace(result, hold_probability=p)
+    reason = (f"force closure, but predicted to drop when lifted (hold probability {p:.2f}; "
+              f"{mass:.2f} kg estimated at {DENSITY_KG_M3:g} kg/m³)")
+    return dataclasses.replace(result, hold_probability=p, success=False, reason=reason)
+
+
+def table_limits(mesh: trimesh.Trimesh, plane: SupportPlane) -> str | None:
+    """Why the hand may find no grasp of ``mesh`` on ``plane``: its footprint is wider than what
+    the fingertips close to from above (:func:`grasp.screen.fingertip_span`); None otherwise."""
+    narrow, long, height = footprint(mesh, plane)
+    span = fingertip_span()
+    if narrow <= span:
+        return None
+    return (f"the object is {100 * narrow:.0f} × {100 * long:.0f} cm on the table and "
+            f"{100 * height:.0f} cm tall: wider than the {100 * span:.0f} cm the fingertips "
+            f"close to from above")
 
 
 def read_mesh_argument(parser, path, *, scale: float = 1.0) -> trimesh.Trimesh:

@@ -168,6 +168,32 @@ def finger_reach(params: BarrettParams = BH8_282) -> float:
 
 
 @functools.lru_cache(maxsize=8)
+def fingertip_span(params: BarrettParams = BH8_282) -> float:
+    """Width (m) between opposing fingers where a closing finger reaches deepest below the palm
+    (:func:`finger_reach`): what a grasp from above closes to at table level, about 0.11 m for
+    the BH8-282 (finger 3's deepest point lies 57 mm from the palm's axis)."""
+    kinematics = _kinematics(params)
+    deepest, across = -np.inf, 0.0
+    for q in np.radians(np.arange(0.0, params.finger_dof_max_deg + 0.5, 1.0)):
+        j2, j3 = min(q, np.radians(params.proximal_max_deg)), params.distal_ratio * q
+        links = kinematics.link_poses(np.array([0.0, j2, j3, 0.0, j2, j3, j2, j3]))
+        for prim in kinematics.primitives_of("f3_dist"):
+            corners = _corners(prim.kind, prim.size)
+            points = (links[prim.link] @ prim.pose @ corners.T)[:3].T
+            k = int(np.argmax(points[:, 2]))
+            if points[k, 2] > deepest:
+                deepest, across = points[k, 2], abs(points[k, 1])
+    return 2.0 * across
+
+
+def _corners(kind: str, size) -> np.ndarray:
+    """(8, 4) homogeneous corners of a box (full extents), or of a cylinder's bounding box."""
+    half = 0.5 * np.asarray(size) if kind == "box" else np.array([size[0], size[0], size[1] / 2])
+    signs = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)])
+    return np.c_[signs * half, np.ones(8)]
+
+
+@functools.lru_cache(maxsize=8)
 def _kinematics(params: BarrettParams) -> HandKinematics:
     return HandKinematics(params)
 

@@ -107,6 +107,8 @@ class Grasp:
     volume: float
     palm_contact: bool
     contacts: tuple[Contact, ...]
+    approach_stop: str = "contact"  # "limit": stop at palm_pose; "contact": on until it touches
+    hold_probability: float | None = None  # on a table: the ranking's estimate that it holds
 
     @property
     def joint_array(self) -> np.ndarray:
@@ -126,6 +128,8 @@ class Grasp:
             volume=float(g["volume"]), palm_contact=bool(g["palm_contact"]),
             contacts=tuple(Contact(c["link"], np.asarray(c["point"]), np.asarray(c["normal"]))
                            for c in g["contacts"]),
+            approach_stop=str(g.get("approach_stop", "contact")),
+            hold_probability=g.get("hold_probability"),
         )
 
 

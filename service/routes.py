@@ -7,6 +7,7 @@ errors are raised as exceptions that :mod:`service.app` turns into 4xx answers.
 from __future__ import annotations
 
 import base64
+import math
 import re
 import time
 from datetime import UTC, datetime
@@ -312,6 +313,9 @@ def _grasp_out(result, camera_to_world: np.ndarray | None) -> GraspOut:
         volume=float(result.volume),
         force_epsilon=float(result.force_epsilon),
         palm_contact=palm_touches(result),
+        approach_stop=result.approach_stop,
+        hold_probability=None if math.isnan(result.hold_probability)
+        else float(result.hold_probability),
         contacts=[
             ContactOut(
                 link=c.link,

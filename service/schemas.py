@@ -147,6 +147,16 @@ class GraspOut(BaseModel):
         "the ranking's measure after force closure and palm contact"
     )
     palm_contact: bool = Field(description="the palm touches the object (a power grasp)")
+    approach_stop: str = Field(
+        description="how to execute it: move from the pre-grasp pose toward palm_pose, stopping "
+        "at the first touch (object or table); 'contact': the plan's approach ended touching "
+        "the object, so go on past palm_pose (up to 5 cm) until it touches; 'limit': a "
+        "fingertip grasp, stop at palm_pose untouched; then close"
+    )
+    hold_probability: float | None = Field(
+        description="with a support plane, the ranking's estimate that the grasp holds when the "
+        "object is lifted (a model learned from lift tests); null without one"
+    )
     contacts: list[ContactOut]
     hand: list[PrimitiveOut] = Field(
         description="the hand at this grasp as collision primitives placed by its kinematics"
