@@ -44,19 +44,21 @@ def plan_grasps(
     seed: int,
     top_k: int,
     support_plane=None,
+    budget: int | None = None,
 ) -> tuple[list, float]:
     """``grasp.planner.plan`` on the mesh (vertices (v, 3), faces (f, 3)); also its seconds.
 
-    ``support_plane``: a ``grasp.table.SupportPlane`` in the mesh's frame, or None."""
+    ``support_plane``: a ``grasp.table.SupportPlane`` in the mesh's frame, or None; ``budget``:
+    candidates autograsped (None: the planner's default)."""
     import trimesh
 
     from grasp.planner import plan
 
     mesh = trimesh.Trimesh(vertices, faces, process=False)
     start = time.perf_counter()
-    results = plan(
-        mesh, n_candidates=n_candidates, seed=seed, top_k=top_k, support_plane=support_plane
-    )
+    options = {} if budget is None else {"budget": budget}
+    results = plan(mesh, n_candidates=n_candidates, seed=seed, top_k=top_k,
+                   support_plane=support_plane, **options)
     return results, time.perf_counter() - start
 
 
@@ -77,9 +79,11 @@ class Planner:
     bounded queue in front and a cache of recent plans."""
 
     def __init__(
-        self, workers: int, *, processes: bool, queue: int = 16, cache: int = 128
+        self, workers: int, *, processes: bool, queue: int = 16, cache: int = 128,
+        budget: int | None = None,
     ) -> None:
         self.workers = workers
+        self.budget = budget  # candidates autograsped per plan (None: the planner's default)
         self.processes = processes
         self.queue = queue
         self._pool: ProcessPoolExecutor | None = None
@@ -112,7 +116,7 @@ class Planner:
         """The plan, its planning seconds and whether it came from the cache (then the seconds
         are those of the original plan). ``gone``: an async check that the client
         disconnected, asked once a worker is free."""
-        key = _plan_key(vertices, faces, n_candidates, seed, top_k, support_plane)
+        key = _plan_key(vertices, faces, n_candidates, seed, (top_k, self.budget), support_plane)
         if key in self._cache:
             self._cache.move_to_end(key)
             self.cache_hits += 1
@@ -147,6 +151,7 @@ class Planner:
             seed=seed,
             top_k=top_k,
             support_plane=support_plane,
+            budget=self.budget,
         )
         if not self.processes:
             return await anyio.to_thread.run_sync(call)  # self._running bounds the workers

@@ -7,6 +7,8 @@ from pathlib import Path
 from pydantic import Field, SecretStr
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
+from grasp.planner import AUTOGRASP_BUDGET
+
 
 class Settings(BaseSettings):
     """Every knob of the service; ``GRASP_<NAME>`` sets ``<name>`` (e.g. ``GRASP_PORT=8080``)."""
@@ -92,6 +94,10 @@ class Settings(BaseSettings):
     n_candidates: int = Field(64, ge=1, description="default grasp candidates per GET /grasp")
     max_candidates: int = Field(512, ge=1, description="largest n_candidates a client may ask")
     plan_seed: int = Field(0, description="seed of the grasp planner (same state, same grasp)")
+    plan_budget: int = Field(
+        AUTOGRASP_BUDGET, ge=1, description="candidates the planner autograsps exactly, the most "
+        "promising first (the rest are only screened); the top grasp does not depend on top_k"
+    )
     torch_threads: int = Field(
         1, ge=1, description="torch intra-op threads (torch.set_num_threads)"
     )
