@@ -282,7 +282,14 @@ def test_tiny_run_writes_its_reports(tiny_run):
     for cell in bench.values():
         assert cell["tested"] == 1 and sum(cell["reasons"].values()) == 1 - cell["held"]
         assert 0 <= cell["ci95"][0] <= cell["held"] <= cell["ci95"][1] <= 1
-    assert results["grasp_benchmark_objects"] == ["named/mug"] and "on a table" in report
+    (record,) = results["grasp_benchmark_objects"]
+    assert record["id"] == "named/mug" and "on a table" in report
+    assert len(record["size_m"]) == 3 and record["mass_kg"] > 0 and set(record["rows"]) == set(bench)
+    for outcome in record["rows"].values():
+        assert isinstance(outcome["held"], bool) and outcome["reason"]
+        if "executed_joints_deg" in outcome:  # a grasp was planned and executed
+            assert len(outcome["planned_joints_deg"]) == len(outcome["executed_joints_deg"]) == 8
+            assert outcome["kind"].split(", ")[0] in ("power", "fingertip")
     records = [r for r in results["per_object"] if r["table"] == "main"]
     assert len(records) == len(CONDITIONS) * 2 * len(ev.ROWS)
     for kind in ("wall", "cpu"):

@@ -180,7 +180,7 @@ def run_object(scene: Scene, models: dict, thresholds: dict, rows, *, candidates
                       support_plane=table.transformed(camera))
         if not grasps or not grasps[0].success:
             why = grasps[0].reason if grasps else "no candidate"
-            out[row] = {"held": False, "reason": f"no grasp planned ({why})"}
+            out[row] = {"held": False, "reason": f"no grasp planned: {why}"}
             continue
         world = dataclasses.replace(grasps[0], palm_pose=camera @ grasps[0].palm_pose)
         result = lift_test(scene.mesh, world, seed=seed, table=True, approach="guarded")
@@ -234,4 +234,6 @@ def _reason_kind(reason: str) -> str:
     """A reason without its numbers and details, so that alike failures count together."""
     if reason.startswith("the object left the hand"):
         return reason.split(",")[0]
-    return reason.split(" (")[0] if reason.startswith("no grasp planned") else reason
+    if reason.startswith("no grasp planned"):
+        return reason.split(" (")[0].split(";")[0]
+    return reason
