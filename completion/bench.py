@@ -30,7 +30,7 @@ from typing import Any, Literal
 
 import torch
 
-from completion.cli import name_list
+from completion.cli import HelpWithDefaults, name_list
 from completion.config import DEFAULT_CONFIGS, default_config
 from completion.model import (
     WEIGHTS_DIR,
@@ -156,7 +156,7 @@ def _int_list(text: str) -> list[int]:
 
 
 def main(argv: Sequence[str] | None = None) -> None:
-    parser = argparse.ArgumentParser(
+    parser = argparse.ArgumentParser(formatter_class=HelpWithDefaults,
         prog="python -m completion.bench",
         description="Streaming latency and state size per view count (JSON on stdout).",
     )

@@ -1,9 +1,26 @@
-"""argparse types shared by the command lines (data, train, evaluate): clear errors at the edge."""
+"""argparse types shared by the command lines (data, train, evaluate): clear errors at the edge,
+and the --help formatter that states every default."""
 
 from __future__ import annotations
 
 import argparse
 from collections.abc import Callable
+
+
+class HelpWithDefaults(argparse.HelpFormatter):
+    """--help that states each option's default: "(default: X)" after a help text that does not
+    already say it in words (an option whose default is None must)."""
+
+    def _get_help_string(self, action: argparse.Action) -> str:
+        text = action.help or ""
+        skip = action.default in (None, argparse.SUPPRESS) or isinstance(action.default, bool)
+        if "default" in text.lower() or skip or not action.option_strings:
+            return text
+        return f"{text} (default: %(default)s)" if text else "default: %(default)s"
+
+
+class DefaultsAndRawDescription(HelpWithDefaults, argparse.RawDescriptionHelpFormatter):
+    """:class:`HelpWithDefaults` with the description as written."""
 
 
 def name_list(choices: tuple[str, ...], what: str) -> Callable[[str], tuple[str, ...]]:

@@ -30,7 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
-from completion.cli import integer_at_least, name_list
+from completion.cli import DefaultsAndRawDescription, HelpWithDefaults, integer_at_least, name_list
 from completion.scenes import CONDITIONS, VIEWS, Sequence, make_sequence
 
 SHARD_KEYS = ("inputs", "targets", "grid_to_camera", "camera_to_world")
@@ -228,10 +228,13 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(
         prog="python -m completion.data",
         description=__doc__,
-        formatter_class=argparse.RawDescriptionHelpFormatter,
+        formatter_class=DefaultsAndRawDescription,
     )
     sub = parser.add_subparsers(dest="command", required=True)
-    g = sub.add_parser("generate", help="render sequences and write shards")
+    g = sub.add_parser("generate",
+        formatter_class=HelpWithDefaults,
+        help="render sequences and write shards",
+    )
     g.add_argument(
         "--condition",
         type=parse_conditions,
@@ -252,7 +255,10 @@ def main(argv: list[str] | None = None) -> int:
                    help="the sensor model (completion.render.SensorModel): auto = on for "
                    "tabletop only, on = every condition, off = none")
     g.add_argument("--keep-depth", action="store_true", help="store depth and mask images too")
-    s = sub.add_parser("show", help="draw a shard's inputs and targets to a PNG")
+    s = sub.add_parser("show",
+        formatter_class=HelpWithDefaults,
+        help="draw a shard's inputs and targets to a PNG",
+    )
     s.add_argument("file", type=Path)
     s.add_argument("--out", type=Path, default=Path("view.png"))
     args = parser.parse_args(argv)

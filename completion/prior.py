@@ -25,6 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
+from completion.cli import DefaultsAndRawDescription
 from completion.grid import GRID_SHAPE, jaccard
 
 __all__ = ["Prior", "build_prior", "load_prior", "main"]
@@ -120,7 +121,7 @@ def main(argv: list[str] | None = None) -> int:
 
     argv = sys.argv[1:] if argv is None else argv
     p = argparse.ArgumentParser(prog="python -m completion.prior", description=__doc__,
-                                formatter_class=argparse.RawDescriptionHelpFormatter)
+                                formatter_class=DefaultsAndRawDescription)
     p.add_argument("--train-dir", type=Path, default=Path("data/train"))
     p.add_argument("--val-dir", type=Path, default=Path("data/val"))
     p.add_argument("--out", type=Path, default=Path("completion/weights") / PRIOR_FILE)

@@ -48,7 +48,7 @@ import numpy as np
 import torch
 from torch.nn import functional as F
 
-from completion.cli import one_name
+from completion.cli import DefaultsAndRawDescription, one_name
 from completion.config import DEFAULT_CONFIGS, ModelConfig, default_config
 from completion.data import generate, parse_conditions
 from completion.distributed import World, setup
@@ -424,7 +424,7 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
     p = argparse.ArgumentParser(
         prog="python -m completion.train",
         description=__doc__,
-        formatter_class=argparse.RawDescriptionHelpFormatter,
+        formatter_class=DefaultsAndRawDescription,
     )
     p.add_argument("--model", type=one_name(tuple(sorted(DEFAULT_CONFIGS)), "models"),
                    required=True, help=f"one of {', '.join(sorted(DEFAULT_CONFIGS))}")
@@ -465,7 +465,8 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
     p.add_argument("--resume", action="store_true", help="continue <run-dir>/last.pt")
     p.add_argument("--init-from", type=Path, default=None,
                    help="start from a checkpoint: the same model whole, or every tensor another "
-                   "kind shares with it (a Single-View U-Net, a multi-view model's towers)")
+                   "kind shares with it (a Single-View U-Net, a multi-view model's towers); "
+                   "default: random initialisation")
     p.add_argument("--precision", choices=("fp32", "bf16"), default="fp32",
                    help="bf16 autocast for the convolutions (fp32 master weights)")
     p.add_argument("--augment", choices=AUGMENTATIONS, default="mirror",

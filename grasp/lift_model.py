@@ -192,15 +192,23 @@ def train(data: Path, out: Path) -> dict:
 
 
 def main(argv: Sequence[str] | None = None) -> None:
-    parser = argparse.ArgumentParser(prog="python -m grasp.lift_model", description=__doc__.split(
+    parser = argparse.ArgumentParser(
+        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+        prog="python -m grasp.lift_model", description=__doc__.split(
         "\n\n")[0])
     sub = parser.add_subparsers(dest="command", required=True)
-    c = sub.add_parser("collect", help="lift-test grasps on training-split objects (CSV)")
+    c = sub.add_parser("collect",
+        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+        help="lift-test grasps on training-split objects (CSV)",
+    )
     c.add_argument("--objects", type=int, default=200, help="training objects (default 200)")
     c.add_argument("--seed", type=int, default=0, help="seed of the objects and poses (default 0)")
     c.add_argument("--workers", type=int, default=2, help="processes (default 2)")
     c.add_argument("--out", type=Path, default=DATA_PATH, help=f"CSV (default {DATA_PATH.name})")
-    t = sub.add_parser("train", help="fit the model on the CSV, write its JSON")
+    t = sub.add_parser("train",
+        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+        help="fit the model on the CSV, write its JSON",
+    )
     t.add_argument("--data", type=Path, default=DATA_PATH, help=f"default {DATA_PATH.name}")
     t.add_argument("--out", type=Path, default=MODEL_PATH, help=f"default {MODEL_PATH.name}")
     args = parser.parse_args(argv)

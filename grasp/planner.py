@@ -363,7 +363,9 @@ def main(argv: Sequence[str] | None = None) -> None:
     import argparse
     from pathlib import Path
 
-    parser = argparse.ArgumentParser(
+    from completion.cli import HelpWithDefaults
+
+    parser = argparse.ArgumentParser(formatter_class=HelpWithDefaults,
         prog="python -m grasp.planner", description="Plan BarrettHand grasps on a mesh file."
     )
     add = parser.add_argument
@@ -376,8 +378,8 @@ def main(argv: Sequence[str] | None = None) -> None:
         help=f"candidates autograsped exactly, the screen's most promising first (0: all, no "
         f"screen; default {AUTOGRASP_BUDGET})")
     add("--support-plane", type=_plane_argument, default=None, metavar="NX,NY,NZ,D",
-        help="the table the object rests on, n·x + d = 0 in the mesh's frame, n up: an obstacle "
-        "to the hand, no approach from below")
+        help="the table the object rests on (default: none), n·x + d = 0 in the mesh's frame, "
+        "n up: an obstacle to the hand, no approach from below")
     args = parser.parse_args(argv)
     mesh = read_mesh_argument(parser, args.mesh, scale=args.scale)
     wall, cpu = time.perf_counter(), time.process_time()

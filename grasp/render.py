@@ -18,6 +18,7 @@ import numpy as np
 import trimesh
 
 from completion.bullet import pybullet
+from completion.cli import HelpWithDefaults
 from grasp.autograsp import GraspResult
 from grasp.sim import GraspWorld, check_mesh
 
@@ -123,7 +124,7 @@ def save_grasp_figure(
 
 
 def main(argv: Sequence[str] | None = None) -> None:
-    parser = argparse.ArgumentParser(
+    parser = argparse.ArgumentParser(formatter_class=HelpWithDefaults,
         prog="python -m grasp.render",
         description="Plan a BarrettHand grasp on a mesh file and save a picture of it.",
     )

@@ -11,6 +11,7 @@ import sys
 
 from pydantic import ValidationError
 
+from completion.cli import DefaultsAndRawDescription
 from service.settings import Settings
 
 
@@ -25,7 +26,7 @@ def main(argv: list[str] | None = None) -> None:
             f"  GRASP_{name.upper():<{width}}{field.description} (default {field.default})"
             for name, field in Settings.model_fields.items()
         ),
-        formatter_class=argparse.RawDescriptionHelpFormatter,
+        formatter_class=DefaultsAndRawDescription,
     )
     parser.add_argument("--host", default=defaults.host, help=f"default {defaults.host}")
     parser.add_argument("--port", type=int, default=defaults.port, help=f"default {defaults.port}")

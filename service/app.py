@@ -29,7 +29,7 @@ from completion.stream import NoObjectError
 from service import inspector  # its data routes join `router` on import
 from service.deps import Services, token_problem
 from service.inputs import MAX_COORDINATE_M, InputError
-from service.parsing import BODY_EXPECTED, BodyParser
+from service.parsing import BODY_EXPECTED, BodyParser, field_hint
 from service.pipeline import ModelMismatch, Pipeline, TooManyViews
 from service.planning import ClientGone, Planner, PlannerBusy
 from service.routes import health_router, router
@@ -167,6 +167,8 @@ async def _lifespan(app: FastAPI) -> AsyncIterator[None]:
             settings.inference_workers,
             max_image_pixels=settings.max_image_pixels,
             max_points=settings.max_points,
+            max_depth_median_m=settings.max_depth_median_m,
+            max_point_distance_m=settings.max_point_distance_m,
             at_once=settings.max_parsing,
         ),
     )
@@ -245,8 +247,11 @@ async def _validation_error(request: Request, exc: RequestValidationError) -> JS
         kind = e.get("type", "")
         loc = list(e.get("loc", ()))
         msg = e.get("msg", "")
-        if kind in _BODY_HINTS and loc[:1] == ["body"] and len(loc) <= 2:
+        whole = loc == ["body"] or (kind == "json_invalid" and len(loc) <= 2)
+        if kind in _BODY_HINTS and loc[:1] == ["body"] and whole:
             msg = f"{msg}: {_BODY_HINTS[kind]}"  # loc keeps where JSON parsing stopped
+        elif kind in ("model_type", "model_attributes_type", "dict_type") and len(loc) > 1:
+            msg = f"{msg}: {field_hint(loc)}"
         detail.append({"loc": loc, "msg": msg, "type": kind})
     return JSONResponse({"detail": detail}, status_code=status.HTTP_422_UNPROCESSABLE_CONTENT)
 

@@ -42,11 +42,12 @@ RETRY_STATUS = 503
 
 
 class ServiceError(RuntimeError):
-    """The service answered with an error; ``status`` and ``detail`` are its own."""
+    """The service answered with an error; ``status`` and ``detail`` are its own (``status``
+    None: the client found the problem before sending anything)."""
 
-    def __init__(self, status: int, detail: Any) -> None:
+    def __init__(self, status: int | None, detail: Any) -> None:
         self.status, self.detail = status, detail
-        super().__init__(f"{status}: {_message(detail)}")
+        super().__init__(_message(detail) if status is None else f"{status}: {_message(detail)}")
 
 
 class InvalidRequest(ServiceError, ValueError):
@@ -58,6 +59,12 @@ class InvalidRequest(ServiceError, ValueError):
             loc = [str(p) for p in self.detail[0].get("loc", ()) if p not in ("body", "query")]
             return ".".join(loc) or None
         return None
+
+
+def _invalid(field: str, message: str) -> InvalidRequest:
+    """An input the client refuses before sending it, as the service would (``field`` named)."""
+    return InvalidRequest(None, [{"loc": ["body", *field.split(".")], "msg": message,
+                                  "type": "value_error"}])
 
 
 class SessionGone(ServiceError, LookupError):
@@ -224,25 +231,28 @@ class Session:
         return f"{self.client.url}/sessions/{self.id}/view{token}"
 
     def add_view(self, depth: np.ndarray, K: Any, *, mask: np.ndarray | None = None,
-                 camera_pose: np.ndarray | None = None, encoding: str | None = None) -> dict:
+                 object_label: int | None = None, camera_pose: np.ndarray | None = None,
+                 encoding: str | None = None) -> dict:
         """Send one depth image: (H, W) metres (float) or millimetres (uint16), 0 or NaN = no
         return; ``encoding`` a ROS name to check it against ("32FC1", "16UC1", "mono16").
-        ``mask`` (H, W), non-zero = object. ``camera_pose`` 4×4 camera→world. Returns the
-        service's answer (``view_index``, ``observed_voxels``, ``occupied_voxels``)."""
+        ``mask`` (H, W): boolean, 0/1 or 0/255 with 0 = background, or a label image with
+        ``object_label``, the value of the object's pixels. ``camera_pose`` 4×4 camera→world.
+        Returns the service's answer (``view_index``, ``observed_voxels``,
+        ``occupied_voxels``)."""
         body = {"depth": _depth_field(depth, encoding), "intrinsics": _intrinsics(K)}
         if mask is not None:
-            mask = np.asarray(mask)
-            if mask.shape != np.shape(depth):
-                raise ValueError(f"mask must have the depth image's shape {np.shape(depth)}, "
-                                 f"got {mask.shape}")
-            body["mask"] = mask_png(mask)
+            body["mask"] = mask_png(_object_pixels(mask, np.shape(depth), object_label))
+        elif object_label is not None:
+            raise _invalid("object_label", "object_label names the object's value in a label "
+                           "image: it needs mask")
         return self._post(body, camera_pose)
 
     def add_points(self, points: np.ndarray, *, camera_pose: np.ndarray | None = None) -> dict:
         """Send the object's observed points, (N, 3) metres in the camera frame."""
         p = np.asarray(points, dtype=np.float64)
         if p.ndim != 2 or p.shape[1] != 3 or not np.isfinite(p).all():
-            raise ValueError(f"points must be a finite (N, 3) array, got shape {p.shape}")
+            raise _invalid("points",
+                           f"points must be a finite (N, 3) array, got shape {p.shape}")
         return self._post({"points": p.tolist()}, camera_pose)
 
     def add_grid(self, grid, *, camera_pose: np.ndarray | None = None) -> dict:
@@ -289,7 +299,8 @@ class Session:
         if camera_pose is not None:
             pose = np.asarray(camera_pose, dtype=np.float64)
             if pose.shape != (4, 4) or not np.isfinite(pose).all():
-                raise ValueError(f"camera_pose must be a finite 4×4 array, got shape {pose.shape}")
+                raise _invalid("camera_pose",
+                               f"camera_pose must be a finite 4×4 array, got shape {pose.shape}")
             body["camera_pose"] = pose.tolist()
         if self.id is not None:
             body["session_id"] = self.id
@@ -301,7 +312,8 @@ class Session:
 
     def _need_id(self) -> None:
         if self.id is None:
-            raise RuntimeError("the session has no view yet: add_view or add_points first")
+            raise NothingSeen(None, "the session has no view yet: add_view, add_points or "
+                              "add_grid first")
 
     def __enter__(self) -> Session:
         return self
@@ -313,20 +325,46 @@ class Session:
 def _depth_field(depth: np.ndarray, encoding: str | None) -> dict:
     d = np.asarray(depth)
     if d.ndim != 2 or min(d.shape) < 1:
-        raise ValueError(f"depth must be an (H, W) image, got shape {d.shape}")
+        raise _invalid("depth", f"depth must be an (H, W) image, got shape {d.shape}")
     unit = "mm" if d.dtype == np.uint16 else "m" if d.dtype.kind == "f" else None
     if unit is None:
-        raise ValueError(f"depth must be float metres or uint16 millimetres, got {d.dtype}")
+        raise _invalid("depth", f"depth must be float metres or uint16 millimetres, got {d.dtype}")
     if encoding is not None:
         if encoding not in DEPTH_ENCODINGS:
-            raise ValueError(f"encoding must be one of {sorted(DEPTH_ENCODINGS)}, got {encoding!r}")
+            raise _invalid("depth.encoding",
+                           f"encoding must be one of {sorted(DEPTH_ENCODINGS)}, got {encoding!r}")
         if DEPTH_ENCODINGS[encoding] != unit:
-            raise ValueError(f"encoding {encoding!r} holds {DEPTH_ENCODINGS[encoding]} but the "
+            raise _invalid("depth.encoding",
+                           f"encoding {encoding!r} holds {DEPTH_ENCODINGS[encoding]} but the "
                              f"depth array is {d.dtype} ({unit})")
     if unit == "mm":  # the camera's own millimetres, losslessly
         h, w = d.shape
         return {"encoding": "png16_mm", "width": w, "height": h, "data": b64(png_bytes(d))}
     return depth_f32_m(d)
+
+
+#: The values a mask may hold without ``object_label`` (0 = background).
+MASK_VALUES = ({0, 1}, {0, 255})
+
+
+def _object_pixels(mask: Any, shape: tuple[int, ...], label: int | None) -> np.ndarray:
+    """(H, W) bool: the object's pixels of a boolean, 0/1 or 0/255 mask, or of a label image's
+    ``label``; anything else is refused with the dtype and the values it holds."""
+    m = np.asarray(mask)
+    if m.shape != tuple(shape):
+        raise _invalid("mask", f"mask must have the depth image's shape {tuple(shape)}, "
+                       f"got {m.shape}")
+    if label is not None:
+        return m == label
+    if m.dtype == bool:
+        return m
+    values = np.unique(m)
+    if m.dtype.kind in "iuf" and any(set(values.tolist()) <= allowed for allowed in MASK_VALUES):
+        return m != 0
+    shown = ", ".join(f"{v:g}" for v in values[:8].tolist()) + (", …" if len(values) > 8 else "")
+    raise _invalid("mask", f"the mask ({m.dtype}) holds {len(values)} distinct values ({shown}); "
+                   "a mask is boolean, 0/1 or 0/255 with 0 = background, or a label image with "
+                   "object_label=<the object's value>")
 
 
 def _intrinsics(K: Any) -> dict:
@@ -337,18 +375,20 @@ def _intrinsics(K: Any) -> dict:
         k = np.asarray(K, dtype=np.float64)
         if k.shape == (3, 3):
             if not np.allclose(k[2], [0, 0, 1]) or k[0, 1] != 0 or k[1, 0] != 0:
-                raise ValueError("K must be a pinhole camera matrix [[fx, 0, cx], [0, fy, cy], "
+                raise _invalid("intrinsics",
+                               "K must be a pinhole camera matrix [[fx, 0, cx], [0, fy, cy], "
                                  f"[0, 0, 1]], got {k.tolist()}")
             values = [k[0, 0], k[1, 1], k[0, 2], k[1, 2]]
         elif k.shape == (4,):
             values = list(k)
         else:
-            raise ValueError(f"K must be 3×3 or (fx, fy, cx, cy), got shape {k.shape}")
+            raise _invalid("intrinsics", f"K must be 3×3 or (fx, fy, cx, cy), got shape {k.shape}")
     if any(v is None for v in values):
-        raise ValueError("K needs fx, fy, cx and cy")
+        raise _invalid("intrinsics", "K needs fx, fy, cx and cy")
     fx, fy, cx, cy = (float(v) for v in values)
     if not all(math.isfinite(v) for v in (fx, fy, cx, cy)) or fx <= 0 or fy <= 0:
-        raise ValueError(f"K needs finite fx, fy > 0 and finite cx, cy; got {fx}, {fy}, {cx}, {cy}")
+        raise _invalid("intrinsics",
+                       f"K needs finite fx, fy > 0 and finite cx, cy; got {fx}, {fy}, {cx}, {cy}")
     return {"fx": fx, "fy": fy, "cx": cx, "cy": cy}
 
 
@@ -357,7 +397,8 @@ def _plane(plane: Sequence[float] | None) -> list[float] | None:
         return None
     p = np.asarray(plane, dtype=np.float64)
     if p.shape != (4,) or not np.isfinite(p).all() or not np.linalg.norm(p[:3]) > 0:
-        raise ValueError(f"support_plane must be four finite numbers (nx, ny, nz, d) with a "
+        raise _invalid("support_plane",
+                       "support_plane must be four finite numbers (nx, ny, nz, d) with a "
                          f"non-zero normal, got {plane!r}")
     return [float(v) for v in p]
 

@@ -24,6 +24,11 @@ MAX_COORDINATE_M = 1000.0
 RIGID_TOL = 1e-3
 #: Voxel pitch (metres) a client-made grid may have: 0.1 mm to 10 m.
 MIN_PITCH_M, MAX_PITCH_M = 1e-4, 10.0
+#: Fields of view (degrees) a depth camera has: focal lengths that give one outside are not in
+#: pixels (or belong to another image size).
+MIN_FOV_DEG, MAX_FOV_DEG = 20.0, 150.0
+#: The values an 8-bit mask may hold without ``object_label`` (0 = background).
+MASK_VALUES = ({0, 1}, {0, 255})
 
 
 class InputError(ValueError):
@@ -50,12 +55,22 @@ class DecodedView:
                 "support_plane": self.support_plane}
 
 
-def decode_view(view: ViewIn, *, max_image_pixels: int, max_points: int) -> DecodedView:
+def decode_view(
+    view: ViewIn,
+    *,
+    max_image_pixels: int,
+    max_points: int,
+    max_depth_median_m: float = 5.0,
+    max_point_distance_m: float = 10.0,
+) -> DecodedView:
     """Decode and check one view; raises :class:`InputError`.
 
     A depth image is back-projected with :func:`completion.grid.depth_to_points`, exactly as
     ``CompletionStream.add_view(depth=...)`` and the training data do, so that the points can be
-    checked like client-sent ones.
+    checked like client-sent ones. What a robot integration gets wrong is caught here: a label
+    image as the mask, millimetres as metres (a depth median beyond ``max_depth_median_m``, the
+    object's points beyond ``max_point_distance_m``), intrinsics that are not in pixels or not of
+    this image.
     """
     pose = None if view.camera_pose is None else _camera_pose(view.camera_pose)
     plane = None
@@ -75,13 +90,15 @@ def decode_view(view: ViewIn, *, max_image_pixels: int, max_points: int) -> Deco
             raise InputError(
                 ("body", "points"), f"at most {max_points} points per view, got {len(view.points)}"
             )
-        points = np.asarray(view.points, dtype=np.float64).reshape(-1, 3)
-        return DecodedView(points=_checked_points(points), **posed)
+        points = _checked_points(np.asarray(view.points, dtype=np.float64).reshape(-1, 3))
+        _plausible_distance(points, max_point_distance_m, ("body", "points"), POINTS_HINT)
+        return DecodedView(points=points, **posed)
     if view.grid is not None:
         return DecodedView(grid=_grid(view.grid), **posed)
     assert view.depth is not None and view.intrinsics is not None  # ViewIn's own check
     depth = _depth(view.depth, max_image_pixels)  # (H, W) uint16 mm or float32 m, as sent
-    mask = None if view.mask is None else _mask(view.mask, depth.shape)
+    _plausible_intrinsics(view.intrinsics, depth.shape)
+    mask = None if view.mask is None else _mask(view.mask, depth.shape, view.object_label)
     step = thinning_step(depth, mask, max_points)
     k = view.intrinsics
     if step > 1:  # every step-th pixel along both axes: the same camera at a lower resolution
@@ -92,9 +109,62 @@ def decode_view(view: ViewIn, *, max_image_pixels: int, max_points: int) -> Deco
     metres = depth.astype(np.float64)
     if depth.dtype == np.uint16:
         metres /= 1000.0
+    _plausible_depth(metres, mask, max_depth_median_m, view.depth.encoding)
     with np.errstate(over="ignore", invalid="ignore"):
         points = depth_to_points(metres, intrinsics, mask)
-    return DecodedView(points=_checked_points(points, from_depth=True), **posed)
+    points = _checked_points(points, from_depth=True)
+    _plausible_distance(points, max_point_distance_m, ("body", "depth", "data"), MILLIMETRES_HINT)
+    return DecodedView(points=points, **posed)
+
+
+MILLIMETRES_HINT = "it looks like millimetres: send png16_mm (uint16 millimetres) or divide by 1000"
+POINTS_HINT = "they look like millimetres: send metres (divide by 1000)"
+
+
+def _plausible_depth(metres: np.ndarray, mask, limit: float, encoding: str) -> None:
+    """The depth's median over the object (valid pixels, inside the mask) within ``limit``."""
+    valid = np.isfinite(metres) & (metres > 0)
+    if mask is not None:
+        valid &= mask
+    if not valid.any():
+        return
+    median = float(np.median(metres[valid]))
+    if median > limit:
+        hint = MILLIMETRES_HINT if encoding == "f32_m" else "check the depth scale"
+        raise InputError(("body", "depth", "data"),
+                         f"the depth's median over the object is {median:g} m, farther than a "
+                         f"depth camera sees (GRASP_MAX_DEPTH_MEDIAN_M = {limit:g} m): {hint}")
+
+
+def _plausible_distance(points: np.ndarray, limit: float, loc: tuple[str, ...], hint: str) -> None:
+    """The object's points (their median distance from the camera) within ``limit``."""
+    if not len(points):
+        return
+    median = float(np.median(np.linalg.norm(points, axis=1)))
+    if median > limit:
+        raise InputError(loc, f"the object's points lie {median:g} m from the camera (median), "
+                         f"farther than a depth camera sees (GRASP_MAX_POINT_DISTANCE_M = "
+                         f"{limit:g} m): {hint}")
+
+
+def _plausible_intrinsics(k, shape: tuple[int, int]) -> None:
+    """The principal point inside the image; focal lengths in pixels that give this image a
+    field of view a depth camera has (:data:`MIN_FOV_DEG` … :data:`MAX_FOV_DEG`)."""
+    h, w = shape
+    loc = ("body", "intrinsics")
+    if not (0 <= k.cx <= w - 1 and 0 <= k.cy <= h - 1):
+        swapped = 0 <= k.cy <= w - 1 and 0 <= k.cx <= h - 1
+        raise InputError(loc, f"the principal point (cx, cy) = ({k.cx:g}, {k.cy:g}) lies outside "
+                         f"the {w}×{h} depth image (cx in 0…{w - 1}, cy in 0…{h - 1})"
+                         + ("; are cx and cy swapped?" if swapped else ""))
+    for name, f, size, side in (("fx", k.fx, w, "wide"), ("fy", k.fy, h, "high")):
+        fov = float(np.degrees(2.0 * np.arctan(size / (2.0 * f))))
+        if not MIN_FOV_DEG <= fov <= MAX_FOV_DEG:
+            raise InputError(loc, f"{name} = {f:g} gives the {size}-pixel-{side} image a field of "
+                             f"view of {fov:.1f}°, where a depth camera's is {MIN_FOV_DEG:g}–"
+                             f"{MAX_FOV_DEG:g}°: focal lengths are in pixels (about "
+                             f"{size / (2 * np.tan(np.radians(30))):.0f} for a 60° view of "
+                             f"this image)")
 
 
 def thinning_step(depth: np.ndarray, mask: np.ndarray | None, max_points: int) -> int:
@@ -216,7 +286,9 @@ def _depth(depth: DepthIn, max_pixels: int) -> np.ndarray:
     return millimetres.astype(np.uint16, copy=False)
 
 
-def _mask(text: str, shape: tuple[int, int]) -> np.ndarray:
+def _mask(text: str, shape: tuple[int, int], label: int | None = None) -> np.ndarray:
+    """The object's pixels: a 0/1 or 0/255 mask, or the pixels equal to ``label`` in a label
+    image; anything else is refused with the values it holds."""
     loc = ("body", "mask")
     image = _png(_base64(text, loc), loc, ("L", "1", "P"), "an 8-bit single-channel PNG")
     h, w = shape
@@ -224,7 +296,16 @@ def _mask(text: str, shape: tuple[int, int]) -> np.ndarray:
         raise InputError(
             loc, f"mask is {image.size[0]}×{image.size[1]} but the depth image is {w}×{h}"
         )
-    return _pixels(image, loc) != 0
+    values = _pixels(image, loc)
+    if label is not None:
+        return values == label
+    present = set(np.flatnonzero(np.bincount(values.ravel().astype(np.uint8), minlength=256)))
+    if not any(present <= allowed for allowed in MASK_VALUES):
+        shown = ", ".join(str(v) for v in sorted(present)[:8]) + (", …" if len(present) > 8 else "")
+        raise InputError(loc, f"the mask holds {len(present)} distinct values ({shown}); a mask "
+                         "is 0/1 or 0/255 with 0 = background, or a label image with "
+                         "object_label, the value of the object's pixels")
+    return values != 0
 
 
 def _matrix(rows: list[list[float]], loc: tuple[str, ...], what: str) -> np.ndarray:

@@ -26,6 +26,8 @@ from urllib.parse import urlparse
 
 import numpy as np
 
+from completion.cli import HelpWithDefaults
+
 ROUTES = ("POST /views", "GET /grasp", "GET /sessions/{id}", "DELETE /sessions/{id}")
 
 
@@ -176,7 +178,10 @@ async def run(args, scenes: list[list[dict]]) -> Tally:
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="python -m service.load", description=__doc__.split("\n")[0])
+    p = argparse.ArgumentParser(
+        formatter_class=HelpWithDefaults,
+        prog="python -m service.load", description=__doc__.split("\n")[0],
+    )
     p.add_argument("--url", default="http://127.0.0.1:8000", help="server on a loopback address")
     p.add_argument("--sessions", type=int, default=32)
     p.add_argument("--views", type=int, default=12, help="views per session (at least 2)")
@@ -197,7 +202,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--deadline", type=float, default=1800.0, help="seconds for the whole run")
     p.add_argument("--token", default=os.environ.get("GRASP_TOKEN"), help="default $GRASP_TOKEN")
     p.add_argument("--keep", action="store_true", help="keep the sessions (default: delete)")
-    p.add_argument("--json", help="also write the summary to this file")
+    p.add_argument("--json", help="also write the summary to this file (default: none)")
     args = p.parse_args(argv)
     try:
         args.url = check_loopback(args.url)

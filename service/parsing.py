@@ -60,11 +60,19 @@ def _is_json(content_type: str | None) -> bool:
     )
 
 
-def parse_view(
-    raw: bytes, content_type: str | None, *, max_image_pixels: int, max_points: int
-) -> tuple:
+def field_hint(loc: list) -> str:
+    """What a field that must be a JSON object looks like (a list was sent, say)."""
+    name = ".".join(str(p) for p in loc[1:])
+    if loc[-1] == "intrinsics":
+        return ("intrinsics is a JSON object {\"fx\": …, \"fy\": …, \"cx\": …, \"cy\": …} in "
+                "pixels, not a list; from a 3×3 K: fx = K[0][0], fy = K[1][1], cx = K[0][2], "
+                "cy = K[1][2]")
+    return f"{name} must be a JSON object with the fields the schema gives it (see /docs)"
+
+
+def parse_view(raw: bytes, content_type: str | None, **limits) -> tuple:
     """``("ok", ParsedView)`` or ``("error", status, detail)``: plain data, so that a worker
-    process sends it back without pickling exceptions."""
+    process sends it back without pickling exceptions. ``limits``: :func:`decode_view`'s."""
     if not raw:
         return "error", 422, [{"loc": ["body"], "msg": "Field required", "type": "missing"}]
     body: object = raw
@@ -90,9 +98,13 @@ def parse_view(
     except ValidationError as exc:
         errors = [{"loc": ["body", *e["loc"]], "msg": e["msg"], "type": e["type"]}
                   for e in exc.errors(include_url=False, include_input=False)]  # fmt: skip
+        for e in errors:
+            if e["type"] in ("model_type", "model_attributes_type", "dict_type") and len(
+                    e["loc"]) > 1:
+                e["msg"] = f"{e['msg']}: {field_hint(e['loc'])}"
         return "error", 422, errors
     try:
-        decoded = decode_view(view, max_image_pixels=max_image_pixels, max_points=max_points)
+        decoded = decode_view(view, **limits)
     except InputError as exc:
         return "error", 422, [{"loc": list(exc.loc), "msg": exc.message, "type": "value_error"}]
     return "ok", ParsedView(view.session_id, decoded)
@@ -101,10 +113,9 @@ def parse_view(
 class BodyParser:
     """Parses view bodies: small ones in a thread, big ones in ``workers`` processes."""
 
-    def __init__(self, workers: int, *, max_image_pixels: int, max_points: int,
-                 at_once: int = 2) -> None:
+    def __init__(self, workers: int, *, at_once: int = 2, **limits) -> None:
         self.workers = workers
-        self.limits = dict(max_image_pixels=max_image_pixels, max_points=max_points)
+        self.limits = limits  # decode_view's: image pixels, points, plausible depth
         self._pool: ProcessPoolExecutor | None = None
         # bodies decoded at once, threads and processes together: each may hold a few times
         # GRASP_MAX_IMAGE_PIXELS of arrays, so their number bounds the server's memory

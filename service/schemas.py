@@ -68,8 +68,13 @@ class ViewIn(_Strict):
     intrinsics: IntrinsicsIn | None = Field(None, description="with depth, and only with depth")
     mask: str | None = Field(
         None,
-        description="with depth only: base64 8-bit PNG of the depth image's size, "
-        "non-zero = object pixel (absent: every valid pixel is the object)",
+        description="with depth only: base64 8-bit PNG of the depth image's size, 0/1 or "
+        "0/255 with 0 = background, or a label image with object_label (absent: every valid "
+        "pixel is the object)",
+    )
+    object_label: int | None = Field(
+        None, ge=0, le=255, description="with a mask that is a label image: the value of the "
+        "object's pixels (the others are background)"
     )
     grid: GridIn | None = None
     camera_pose: Matrix4 | None = Field(
@@ -97,6 +102,8 @@ class ViewIn(_Strict):
             raise ValueError("depth needs intrinsics {fx, fy, cx, cy}")
         if self.depth is None and (self.intrinsics is not None or self.mask is not None):
             raise ValueError("intrinsics and mask go with depth only")
+        if self.object_label is not None and self.mask is None:
+            raise ValueError("object_label goes with a mask (a label image)")
         return self
 
 

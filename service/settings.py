@@ -93,6 +93,14 @@ class Settings(BaseSettings):
     )
     n_candidates: int = Field(64, ge=1, description="default grasp candidates per GET /grasp")
     max_candidates: int = Field(512, ge=1, description="largest n_candidates a client may ask")
+    max_depth_median_m: float = Field(
+        5.0, gt=0, description="a depth image whose median over the object is farther (m) is "
+        "refused: millimetres sent as metres"
+    )
+    max_point_distance_m: float = Field(
+        10.0, gt=0, description="views whose object points lie farther from the camera (m) are "
+        "refused: millimetres sent as metres, or a point cloud in another unit"
+    )
     plan_seed: int = Field(0, description="seed of the grasp planner (same state, same grasp)")
     plan_budget: int = Field(
         AUTOGRASP_BUDGET, ge=1, description="candidates the planner autograsps exactly, the most "

@@ -8,7 +8,7 @@ import os
 import time
 from pathlib import Path
 
-from completion.cli import integer_at_least, name_list
+from completion.cli import HelpWithDefaults, integer_at_least, name_list
 from completion.objects import load_object, objects_in_folder
 from completion.prior import PRIOR_FILE
 from completion.scenes import CONDITIONS, VIEWS
@@ -17,6 +17,12 @@ from grasp.evaluate.config import PRESETS, PRIOR, ROWS, Settings, checkpoints_ne
 from grasp.evaluate.figures import write_figures
 from grasp.evaluate.report import markdown_report
 from grasp.evaluate.runner import make_jobs, run_jobs
+
+
+def _preset_help(field: str) -> str:
+    """The defaults of a preset-given option, read from the presets so that --help cannot drift."""
+    d, q, f = (getattr(PRESETS[name], field) for name in ("default", "quick", "full"))
+    return f"default {d}, {q} with --quick, {f} with --full"
 
 
 def evaluate(settings: Settings, *, out: Path | None = None, progress: bool = True) -> dict:
@@ -42,7 +48,7 @@ def evaluate(settings: Settings, *, out: Path | None = None, progress: bool = Tr
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(
+    p = argparse.ArgumentParser(formatter_class=HelpWithDefaults,
         prog="python -m grasp.evaluate",
         description="The paper's evaluation: Jaccard, F-score@1%/2% and grasp joint error for "
         "every model on freshly generated scenes (deterministic from --seed).",
@@ -80,19 +86,21 @@ def build_parser() -> argparse.ArgumentParser:
         type=Path,
         default=None,
         metavar="DIR",
-        help="also evaluate every OBJ/STL/PLY mesh in DIR (camera pan, one sequence each)",
+        help="also evaluate every OBJ/STL/PLY mesh in DIR (camera pan, one sequence each; "
+        "default: none)",
     )
     p.add_argument(
         "--count",
         type=integer_at_least(1),
         default=None,
-        help="sequences per condition and split (overrides the preset)",
+        help=f"sequences per condition and split ({_preset_help('count')})",
     )
     p.add_argument(
         "--grasp-count",
         type=integer_at_least(0),
         default=None,
-        help="of those, how many are also grasped (single-object conditions)",
+        help="of those, how many are also grasped (single-object conditions; "
+        f"{_preset_help('grasp_count')})",
     )
     p.add_argument(
         "--physics-count",
@@ -100,14 +108,14 @@ def build_parser() -> argparse.ArgumentParser:
         default=None,
         metavar="N",
         help="of the grasped test sequences, how many are also lift-tested in pybullet dynamics "
-        "(grasp success; 0 = none; default: 5, 1 with --quick, 10 with --full)",
+        f"(grasp success; 0 = none; {_preset_help('physics_count')})",
     )
     p.add_argument(
         "--named",
         type=integer_at_least(0),
         default=None,
-        help="held-out named pybullet_data objects to evaluate (0 = none; default 5, 3 with "
-        "--quick, 10 with --full)",
+        help="held-out named pybullet_data objects to evaluate (0 = none; "
+        f"{_preset_help('named')})",
     )
     p.add_argument(
         "--overhead",
@@ -115,8 +123,7 @@ def build_parser() -> argparse.ArgumentParser:
         default=None,
         metavar="N",
         help="tabletop test sequences searched for overhead views (elevation ≥ 75°) for the "
-        "share of the completion below the table (0 = none; default 40, 2 with --quick, 200 "
-        "with --full)",
+        f"share of the completion below the table (0 = none; {_preset_help('overhead')})",
     )
     p.add_argument(
         "--benchmark",
@@ -126,7 +133,7 @@ def build_parser() -> argparse.ArgumentParser:
         default=None,
         metavar="N",
         help="objects of the grasp-success benchmark (objects on a table, grasped from 1 or 4 "
-        "views, lift-tested; 0 = none; default 30, 1 with --quick; --benchmark alone: 100)",
+        f"views, lift-tested; 0 = none; {_preset_help('benchmark')}; --benchmark alone: 100)",
     )
     p.add_argument(
         "--benchmark-candidates",
@@ -141,7 +148,7 @@ def build_parser() -> argparse.ArgumentParser:
         default=None,
         metavar="N",
         help="test sequences per paper condition seen through the sensor model (Jaccard; "
-        "0 = none; default 5, 1 with --quick, 50 with --full)",
+        f"0 = none; {_preset_help('sensor')})",
     )
     p.add_argument(
         "--no-sensor",
@@ -154,7 +161,7 @@ def build_parser() -> argparse.ArgumentParser:
         "--candidates",
         type=integer_at_least(1),
         default=None,
-        help="grasp planner candidates per plan (overrides the preset)",
+        help=f"grasp planner candidates per plan ({_preset_help('candidates')})",
     )
     p.add_argument("--views", type=integer_at_least(2), default=VIEWS, help="views per sequence")
     p.add_argument(

@@ -14,7 +14,7 @@ def main(argv: list[str] | None = None) -> int:
 
     from grasp.planner import plan
 
-    parser = argparse.ArgumentParser(
+    parser = argparse.ArgumentParser(formatter_class=argparse.ArgumentDefaultsHelpFormatter,
         prog="python -m grasp.physics",
         description="Plan a BarrettHand grasp on a mesh, then lift-test it in pybullet dynamics.",
     )

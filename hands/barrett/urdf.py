@@ -141,7 +141,10 @@ def write_urdf(path: str | Path, params: BarrettParams = BH8_282) -> Path:
 
 
 def main(argv: list[str] | None = None) -> None:
-    parser = argparse.ArgumentParser(description="Write the BarrettHand BH8-282 URDF.")
+    parser = argparse.ArgumentParser(
+        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+        description="Write the BarrettHand BH8-282 URDF.",
+    )
     parser.add_argument("--out", type=Path, default=SHIPPED_URDF, help="output .urdf path")
     args = parser.parse_args(argv)
     print(write_urdf(args.out))
