@@ -152,11 +152,19 @@ def _plausible_intrinsics(k, shape: tuple[int, int]) -> None:
     field of view a depth camera has (:data:`MIN_FOV_DEG` … :data:`MAX_FOV_DEG`)."""
     h, w = shape
     loc = ("body", "intrinsics")
+
+    def off_centre(cx: float, cy: float) -> float:  # as a share of the image's size
+        return max(abs(cx - (w - 1) / 2) / w, abs(cy - (h - 1) / 2) / h)
+
+    swapped = off_centre(k.cy, k.cx) < 0.02  # exchanged, they would sit at the centre
+    where = f"the principal point (cx, cy) = ({k.cx:g}, {k.cy:g})"
     if not (0 <= k.cx <= w - 1 and 0 <= k.cy <= h - 1):
-        swapped = 0 <= k.cy <= w - 1 and 0 <= k.cx <= h - 1
-        raise InputError(loc, f"the principal point (cx, cy) = ({k.cx:g}, {k.cy:g}) lies outside "
-                         f"the {w}×{h} depth image (cx in 0…{w - 1}, cy in 0…{h - 1})"
-                         + ("; are cx and cy swapped?" if swapped else ""))
+        raise InputError(loc, f"{where} lies outside the {w}×{h} depth image (cx in 0…{w - 1}, "
+                         f"cy in 0…{h - 1})" + ("; are cx and cy swapped?" if swapped else ""))
+    if off_centre(k.cx, k.cy) > 0.1 and swapped:
+        raise InputError(loc, f"{where} lies far from the centre of the {w}×{h} depth image, "
+                         f"where ({k.cy:g}, {k.cx:g}) would sit: cx and cy look swapped (cx "
+                         "runs along the width)")
     for name, f, size, side in (("fx", k.fx, w, "wide"), ("fy", k.fy, h, "high")):
         fov = float(np.degrees(2.0 * np.arctan(size / (2.0 * f))))
         if not MIN_FOV_DEG <= fov <= MAX_FOV_DEG:

@@ -245,6 +245,10 @@ def test_tiny_run_writes_its_reports(tiny_run):
     report = (out / "results.md").read_text()
     assert "Table I: Jaccard" in report and "Registered fusion" in report
     assert "Grasp success" in report and "True mesh (planned on the truth)" in report
+    # a run of fewer than 5 sequences per cell is a smoke test: it says so and bolds nothing
+    assert results["config"]["count"] < 5 and "**A smoke test**" in report
+    ours = report.split("Table I: Jaccard", 1)[1].split("The paper's numbers", 1)[0]
+    assert not [line for line in ours.splitlines() if line.startswith("|") and "**" in line]
     assert results["config"]["views"] == 3 and results["config"]["seed"] == 3
     assert "Prior, ignores the input" in report and "How to read this" in report
     for condition in CONDITIONS:

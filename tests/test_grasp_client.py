@@ -189,10 +189,10 @@ def test_retries_are_bounded(monkeypatch):
 def test_bad_input_raises_before_any_request(call, says):
     transport, seen = _recording([])
     with GraspClient("http://x", transport=transport) as client:
-        with pytest.raises((ValueError, RuntimeError), match=says):
+        with pytest.raises((InvalidRequest, NothingSeen), match=says):  # the documented ones
             call(client.session())
     assert seen == []
-    with pytest.raises(ValueError, match="support_plane"):
+    with pytest.raises(InvalidRequest, match="support_plane"):
         GraspClient("http://x", transport=transport).session(support_plane=(0, 0, 0, 1))
 
 

@@ -114,3 +114,22 @@ def test_the_service_page_lists_every_setting():
     missing = [f"GRASP_{name.upper()}" for name in Settings.model_fields
                if f"GRASP_{name.upper()}" not in page]
     assert not missing, f"docs/service.md does not list {missing}"
+
+
+def test_the_figures_in_the_readme_and_docs_are_those_of_docs_results():
+    """A "± " figure in the README or docs/evaluation.md, and the grasp benchmark's rates in the
+    README, are copied from docs/results.md (the default run's report): they cannot drift."""
+    results = (ROOT / "docs" / "results.md").read_text().replace("−", "-")
+    figure = re.compile(r"[+−-]?\d+\.\d+ ± \d+\.\d+")
+    for page in (ROOT / "README.md", ROOT / "docs" / "evaluation.md"):
+        for value in figure.findall(page.read_text()):
+            assert value.replace("−", "-") in results, f"{page.name}: {value}"
+    readme = " ".join((ROOT / "README.md").read_text().split())
+    rates = re.search(r"holds (\d+) % planned on the true mesh, (\d+) % on MVP's completion of "
+                      r"4 views, (\d+) % of 1 view, (\d+) % on registered fusion", readme)
+    assert rates, "the README's benchmark sentence changed: update this test"
+    labels = ("True mesh (planned on the truth)", "MVP, 4 views", "MVP, 1 view",
+              "Registered fusion, 4 views (ref.)")
+    for label, rate in zip(labels, rates.groups(), strict=True):
+        assert f"| {label} | {rate}/100 |" in results, (label, rate)
+
