@@ -175,11 +175,14 @@ def table_candidates(
 
 
 def footprint(mesh: trimesh.Trimesh, plane: SupportPlane) -> tuple[float, float, float]:
-    """The object's extent across its footprint's short axis, along its long axis, and its
-    height above ``plane`` (metres)."""
-    long, short = _footprint_axes(mesh, plane)
+    """The object's footprint on ``plane`` as its smallest enclosing rectangle's short and long
+    sides, and its height above the plane (metres)."""
+    n = plane.normal
+    e1 = _palm_pose(n, np.zeros(3), np.zeros(3), 0.0)[:3, 0]  # any unit vector in the plane
     v = np.asarray(mesh.vertices)
-    return float(np.ptp(v @ short)), float(np.ptp(v @ long)), float(plane.height(v).max())
+    flat = v @ np.stack([e1, np.cross(n, e1)]).T  # (v, 2) in the plane
+    _, sides = trimesh.bounds.oriented_bounds_2D(flat)
+    return float(min(sides)), float(max(sides)), float(plane.height(v).max())
 
 
 def _footprint_axes(mesh: trimesh.Trimesh, plane: SupportPlane) -> np.ndarray:

@@ -149,7 +149,8 @@ class GraspClient:
                  timeout: float = 120.0, retries: int = 5, max_wait: float = 30.0,
                  transport: httpx.BaseTransport | None = None) -> None:
         if retries < 0 or not max_wait > 0:
-            raise ValueError(f"retries must be >= 0 and max_wait > 0, got {retries}, {max_wait}")
+            raise _invalid("retries", f"retries must be >= 0 and max_wait > 0, got {retries}, "
+                           f"{max_wait}")
         self.url = url.rstrip("/")
         self.token = token
         self.retries, self.max_wait = retries, max_wait

@@ -310,7 +310,8 @@ def _mask(text: str, shape: tuple[int, int], label: int | None = None) -> np.nda
     present = set(np.flatnonzero(np.bincount(values.ravel().astype(np.uint8), minlength=256)))
     if not any(present <= allowed for allowed in MASK_VALUES):
         shown = ", ".join(str(v) for v in sorted(present)[:8]) + (", …" if len(present) > 8 else "")
-        raise InputError(loc, f"the mask holds {len(present)} distinct values ({shown}); a mask "
+        raise InputError(loc, f"the mask (an 8-bit PNG) holds {len(present)} distinct values "
+                         f"({shown}); a mask "
                          "is 0/1 or 0/255 with 0 = background, or a label image with "
                          "object_label, the value of the object's pixels")
     return values != 0

@@ -133,3 +133,38 @@ def test_the_figures_in_the_readme_and_docs_are_those_of_docs_results():
     for label, rate in zip(labels, rates.groups(), strict=True):
         assert f"| {label} | {rate}/100 |" in results, (label, rate)
 
+
+def _table(text: str, title: str) -> dict[str, dict[str, str]]:
+    """A results.md table under ``title``: row label -> column header -> cell, bold removed."""
+    block = text.split(title, 1)[1].split("\n", 1)[1].strip().split("\n\n", 1)[0].splitlines()
+    header = [c.strip() for c in block[0].strip("|").split("|")]
+    rows = {}
+    for line in block[2:]:
+        cells = [c.strip().replace("**", "") for c in line.strip("|").split("|")]
+        rows[cells[0]] = dict(zip(header[1:], cells[1:], strict=True))
+    return rows
+
+
+def test_the_readme_table_is_that_of_docs_results():
+    results = (ROOT / "docs" / "results.md").read_text()
+    jaccard = _table(results, "## Table I: Jaccard")
+    joints = _table(results, "## Table III: grasp joint error")
+    readme = (ROOT / "README.md").read_text().split("| model | camera pan |", 1)[1]
+    rows = {"MVP": "MVP", "Single-View (same U-Net, no memory)": "Single-View",
+            "MVP, memory off (each view alone)": "MVP, memory off: each view alone (ref.)",
+            "prior (one fixed shape, ignores the input)": "Prior, ignores the input (ref.)"}
+    columns = ["Camera Pan", "Object Hiding", "Object Reveal", "Slide Behind Other",
+               "Two Object Pan", "Tabletop (ours)"]
+    seen = 0
+    for line in readme.splitlines()[2:]:
+        if not line.startswith("|"):
+            break
+        cells = [c.strip() for c in line.strip("|").split("|")]
+        if cells[0] not in rows:
+            continue
+        label, seen = rows[cells[0]], seen + 1
+        for column, value in zip(columns, cells[1:7], strict=True):
+            assert value == jaccard[label][f"{column} test"], (cells[0], column)
+        assert cells[7] == joints[label]["Camera Pan test"].split(" ")[0], cells[0]
+    assert seen == len(rows)
+
