@@ -27,8 +27,6 @@ MIN_PITCH_M, MAX_PITCH_M = 1e-4, 10.0
 #: Fields of view (degrees) a depth camera has: focal lengths that give one outside are not in
 #: pixels (or belong to another image size).
 MIN_FOV_DEG, MAX_FOV_DEG = 20.0, 150.0
-#: The values an 8-bit mask may hold without ``object_label`` (0 = background).
-MASK_VALUES = ({0, 1}, {0, 255})
 
 
 class InputError(ValueError):
@@ -307,14 +305,16 @@ def _mask(text: str, shape: tuple[int, int], label: int | None = None) -> np.nda
     values = _pixels(image, loc)
     if label is not None:
         return values == label
-    present = set(np.flatnonzero(np.bincount(values.ravel().astype(np.uint8), minlength=256)))
-    if not any(present <= allowed for allowed in MASK_VALUES):
-        shown = ", ".join(str(v) for v in sorted(present)[:8]) + (", …" if len(present) > 8 else "")
-        raise InputError(loc, f"the mask (an 8-bit PNG) holds {len(present)} distinct values "
-                         f"({shown}); a mask "
-                         "is 0/1 or 0/255 with 0 = background, or a label image with "
-                         "object_label, the value of the object's pixels")
-    return values != 0
+    mask = values != 0
+    if mask.any():  # every object pixel must hold the same 1 or 255 (no copy of the image)
+        low, high = int(values[mask].min()), int(values.max())
+        if low != high or high not in (1, 255):
+            present = np.unique(values)
+            shown = ", ".join(str(v) for v in present[:8]) + (", …" if len(present) > 8 else "")
+            raise InputError(loc, f"the mask (an 8-bit PNG) holds {len(present)} distinct values "
+                             f"({shown}); a mask is 0/1 or 0/255 with 0 = background, or a label "
+                             "image with object_label, the value of the object's pixels")
+    return mask
 
 
 def _matrix(rows: list[list[float]], loc: tuple[str, ...], what: str) -> np.ndarray:

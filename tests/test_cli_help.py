@@ -8,7 +8,7 @@ import importlib
 import pytest
 
 CLIS = ["completion.bench", "completion.prior", "completion.data", "completion.train",
-        "grasp.evaluate.cli", "grasp.render", "grasp.physics.cli", "grasp.lift_model",
+        "grasp.evaluate.cli", "grasp.render", "grasp.physics.cli", "grasp.lift_training",
         "grasp.planner", "service.__main__", "service.load", "hands.barrett.urdf"]
 FLAGS = (argparse._StoreTrueAction, argparse._StoreFalseAction, argparse._StoreConstAction,
          argparse._HelpAction, argparse._VersionAction, argparse._SubParsersAction,

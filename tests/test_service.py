@@ -211,9 +211,10 @@ def test_a_support_plane_given_with_a_view_cuts_the_completion_below_it(client, 
 
 
 def test_a_shape_metres_across_is_answered_without_planning(client):
-    """Points spread over a kilometre (valid input) complete to a shape no hand can close on:
-    the answer says so at once instead of approaching it in 10 mm steps for minutes."""
-    far = {"points": [[-900.0, -900.0, 1.0], [900.0, 900.0, 999.0], [0.0, 0.0, 500.0]]}
+    """Points spread over metres (valid input: within what a depth camera sees) complete to a
+    shape no hand can close on: the answer says so at once instead of approaching it in 10 mm
+    steps for minutes."""
+    far = {"points": [[-3.0, -3.0, 1.0], [3.0, 3.0, 9.0], [0.0, 0.0, 5.0]]}
     sid = new_session(client, far)
     t0 = time.perf_counter()
     r = client.get("/grasp", params={"session_id": sid, "n_candidates": 16})

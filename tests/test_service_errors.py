@@ -116,7 +116,7 @@ BAD_VIEWS = [
      ["body", "grid", "grid_to_camera"], "grid axes along the camera axes"),
     ("intrinsics not pixels", lambda s: _depth_view(s) | {"intrinsics": {
         "fx": 1e-9, "fy": 1e-9, "cx": 0, "cy": 0}}, ["body", "intrinsics"],
-     "back-projects to points beyond ±1000 m"),
+     "focal lengths are in pixels"),
     ("pose not rigid", lambda s: points_view() | {"camera_pose": np.diag([2.0, 1, 1, 1]).tolist()},
      ["body", "camera_pose"], "rigid camera→world transform"),
     ("pose last row", lambda s: points_view() | {"camera_pose": np.ones((4, 4)).tolist()},
