@@ -70,6 +70,19 @@ def field_hint(loc: list) -> str:
     return f"{name} must be a JSON object with the fields the schema gives it (see /docs)"
 
 
+class _DuplicateKey(ValueError):
+    """A JSON object of the body names a key twice (json.loads would keep the last)."""
+
+
+def _each_key_once(pairs: list[tuple[str, object]]) -> dict:
+    out: dict = {}
+    for key, value in pairs:
+        if key in out:
+            raise _DuplicateKey(key)
+        out[key] = value
+    return out
+
+
 def parse_view(raw: bytes, content_type: str | None, **limits) -> tuple:
     """``("ok", ParsedView)`` or ``("error", status, detail)``: plain data, so that a worker
     process sends it back without pickling exceptions. ``limits``: :func:`decode_view`'s."""
@@ -82,7 +95,10 @@ def parse_view(raw: bytes, content_type: str | None, **limits) -> tuple:
         except UnicodeDecodeError as exc:
             return "error", 400, f"the body is not UTF-8 (byte {exc.start}): {BODY_EXPECTED}"
         try:
-            body = json.loads(text)
+            body = json.loads(text, object_pairs_hook=_each_key_once)
+        except _DuplicateKey as exc:
+            return "error", 400, (f"the key {exc.args[0]!r} appears twice in one JSON object of "
+                                  "the body; give each key once")
         except json.JSONDecodeError as exc:
             return "error", 422, [{"loc": ["body", exc.pos], "msg": f"JSON decode error: "
                                    f"{exc.msg}", "type": "json_invalid"}]  # fmt: skip
@@ -98,10 +114,6 @@ def parse_view(raw: bytes, content_type: str | None, **limits) -> tuple:
     except ValidationError as exc:
         errors = [{"loc": ["body", *e["loc"]], "msg": e["msg"], "type": e["type"]}
                   for e in exc.errors(include_url=False, include_input=False)]  # fmt: skip
-        for e in errors:
-            if e["type"] in ("model_type", "model_attributes_type", "dict_type") and len(
-                    e["loc"]) > 1:
-                e["msg"] = f"{e['msg']}: {field_hint(e['loc'])}"
         return "error", 422, errors
     try:
         decoded = decode_view(view, **limits)

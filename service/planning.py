@@ -92,6 +92,7 @@ class Planner:
         self._cache: OrderedDict[str, tuple[list, float]] = OrderedDict()
         self._cache_size = cache
         self.cache_hits = 0
+        self._inflight: dict[str, asyncio.Future] = {}  # plans being computed, by key
 
     def _executor(self) -> ProcessPoolExecutor:
         if self._pool is None:
@@ -113,14 +114,46 @@ class Planner:
         support_plane=None,
         gone: Callable[[], Awaitable[bool]] | None = None,
     ) -> tuple[list, float, bool]:
-        """The plan, its planning seconds and whether it came from the cache (then the seconds
-        are those of the original plan). ``gone``: an async check that the client
+        """The plan, its planning seconds and whether it came from the cache or from the same
+        plan another request was computing (then the seconds are those of the original plan):
+        identical concurrent plans are computed once. ``gone``: an async check that the client
         disconnected, asked once a worker is free."""
         key = _plan_key(vertices, faces, n_candidates, seed, (top_k, self.budget), support_plane)
         if key in self._cache:
             self._cache.move_to_end(key)
             self.cache_hits += 1
             return (*self._cache[key], True)
+        if key in self._inflight:  # the same plan is being computed: share it
+            shared = self._inflight[key]
+            try:
+                return (*await asyncio.shield(shared), True)
+            except (ClientGone, PlannerBusy, BrokenProcessPool, asyncio.CancelledError):
+                if not (shared.done() and (shared.cancelled() or shared.exception())):
+                    raise  # this request was cancelled itself
+                # the computing request's client went, or its worker: plan for this one
+                return await self.plan(vertices, faces, n_candidates=n_candidates, seed=seed,
+                                       top_k=top_k, support_plane=support_plane, gone=gone)
+        shared = asyncio.get_running_loop().create_future()
+        self._inflight[key] = shared
+        try:
+            result = await self._admitted(key, vertices, faces, n_candidates, seed, top_k,
+                                          support_plane, gone)
+        except asyncio.CancelledError:
+            shared.cancel()
+            raise
+        except BaseException as exc:
+            shared.set_exception(exc)
+            shared.exception()  # retrieved: no "never retrieved" warning when nobody waits
+            raise
+        else:
+            shared.set_result(result)
+        finally:
+            del self._inflight[key]
+        return (*result, False)
+
+    async def _admitted(self, key, vertices, faces, n_candidates, seed, top_k, support_plane,
+                        gone) -> tuple[list, float]:
+        """The plan run by a worker once admitted (bounded queue), then cached."""
         if self._pending >= self.workers + self.queue:
             raise PlannerBusy(
                 f"{self._pending} grasp plans are running or waiting (at most "
@@ -140,7 +173,7 @@ class Planner:
             self._cache[key] = result
             while len(self._cache) > self._cache_size:
                 self._cache.popitem(last=False)
-        return (*result, False)
+        return result
 
     async def _run(self, vertices, faces, n_candidates, seed, top_k, support_plane):
         call = partial(

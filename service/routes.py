@@ -198,6 +198,7 @@ async def plan_session(
         mesh.vertices, mesh.faces, n_candidates=n, seed=s.plan_seed, top_k=top_k,
         support_plane=plane, gone=request.is_disconnected,
     )
+    await services.io(services.pipeline.store.get, session_id)  # deleted while it was planned: 404
     total = (time.perf_counter() - start) * 1e3
     timing["planning"] = 0.0 if cached else seconds * 1e3
     timing |= {"waiting": max(total - sum(timing.values()), 0.0), "total": total}

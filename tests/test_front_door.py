@@ -128,3 +128,64 @@ def test_schemathesis_every_check_is_clean(big_server, tmp_path):
     tail = done.stdout[-6000:]
     assert done.returncode == 0, tail
     assert "passed" in tail and "failures" not in tail.lower(), tail
+
+
+def test_a_key_given_twice_is_refused_and_changes_nothing(client):
+    """json.loads keeps the last of two equal keys: a view meant for no session (or another) would
+    land in the real one. Each key once, or 400 naming it."""
+    first = client.post("/views", json=points_view())
+    sid = first.json()["session_id"]
+    body = (f'{{"session_id": "nope", "session_id": "{sid}", "points": [[0, 0, 0.5], '
+            '[0.01, 0, 0.5], [0, 0.01, 0.5]]}')
+    r = client.post("/views", content=body, headers={"content-type": "application/json"})
+    assert r.status_code == 400 and "'session_id' appears twice" in r.json()["detail"]
+    r = client.post("/views", content='{"depth": {"width": 2, "width": 3}}',
+                    headers={"content-type": "application/json"})
+    assert r.status_code == 400 and "'width' appears twice" in r.json()["detail"]
+    assert client.get(f"/sessions/{sid}").json()["views"] == 1
+
+
+@pytest.fixture(scope="module")
+def slow_planner(tmp_path_factory):
+    """Plans that take seconds: every one of up to 512 candidates autograsped."""
+    tmp = tmp_path_factory.mktemp("races")
+    s = Server(tmp, save_tiny(tmp / "tiny.pt"), tmp / "store.sqlite", max_candidates=512,
+               plan_budget=512)
+    yield s
+    s.stop()
+
+
+def _session(url: str) -> str:
+    return httpx.post(f"{url}/views", json=points_view(), timeout=60).json()["session_id"]
+
+
+def test_identical_concurrent_plans_are_computed_once(slow_planner):
+    sid = _session(slow_planner.url)
+    params = {"session_id": sid, "n_candidates": 48}
+    answers: list[httpx.Response] = []
+
+    def ask() -> None:
+        answers.append(httpx.get(f"{slow_planner.url}/grasp", params=params, timeout=300))
+
+    threads = [threading.Thread(target=ask) for _ in range(20)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert [r.status_code for r in answers] == [200] * 20  # none turned away (503)
+    bodies = [r.json() for r in answers]
+    assert sum(not b["cached"] for b in bodies) == 1  # one plan; the others shared it
+    assert all(b["grasps"] == bodies[0]["grasps"] for b in bodies)
+
+
+def test_a_session_deleted_while_it_is_planned_answers_404(slow_planner):
+    sid = _session(slow_planner.url)
+    answer: list[httpx.Response] = []
+    asking = threading.Thread(target=lambda: answer.append(httpx.get(
+        f"{slow_planner.url}/grasp", params={"session_id": sid, "n_candidates": 512},
+        timeout=300)))
+    asking.start()
+    time.sleep(1.0)  # the plan of 512 autograsps is under way
+    assert httpx.delete(f"{slow_planner.url}/sessions/{sid}", timeout=60).status_code == 204
+    asking.join()
+    assert answer[0].status_code == 404, answer[0].text
