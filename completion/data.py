@@ -1,6 +1,6 @@
 """Shards of simulated sequences, and the ``python -m completion.data`` command.
 
-Shard format (DESIGN §4): one compressed ``.npz`` per sequence, named
+Shard format (docs/design.md §4): one compressed ``.npz`` per sequence, named
 ``<condition>_<split>_s<seed>_<index:05d>.npz``, holding
 
 - ``inputs`` (L, 40, 40, 40) bool and ``targets`` (L, 40, 40, 40) bool,

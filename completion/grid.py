@@ -1,6 +1,6 @@
 """Frames and the 40³ voxel grid: the one implementation used by training, evaluation and service.
 
-Conventions (DESIGN §3):
+Conventions (docs/design.md §3):
 
 - Camera frame: OpenCV optical, x right, y down, z forward, metres. Depth is metric z.
 - A grid is a (40, 40, 40) bool array plus a 4×4 ``grid_to_camera`` transform that maps a voxel
@@ -154,8 +154,8 @@ def camera_still(camera_to_world: np.ndarray | None, previous: np.ndarray | None
 def fit_seen(
     points: np.ndarray, seen: np.ndarray | None = None
 ) -> tuple[np.ndarray | None, np.ndarray | None]:
-    """The fit for a view from a camera that has not moved (DESIGN §3): the Varley fit over the
-    bounding box of this view's points together with ``seen``, the (2, 3) [lo, hi] bounds of
+    """The fit for a view from a camera that has not moved (docs/design.md §3): the Varley fit over
+    the bounding box of this view's points together with ``seen``, the (2, 3) [lo, hi] bounds of
     every point seen earlier from the same pose (None for a new pose: the plain per-view fit).
 
     Returns ``(grid_to_camera, bounds)``; both None when there are no points now and none seen
@@ -184,7 +184,7 @@ def view_grid(
     previous_camera: np.ndarray | None = None,
     seen: np.ndarray | None = None,
 ) -> tuple[np.ndarray | None, np.ndarray | None]:
-    """The grid of a new view (DESIGN §3), one rule for the training data and the service.
+    """The grid of a new view (docs/design.md §3), one rule for the training data and the service.
 
     points : (n, 3) this view's observed object points; camera_to_world : its pose, if known;
     previous_grid, previous_camera, seen : the previous view's grid, pose and the bounds this

@@ -1,4 +1,4 @@
-"""Occupancy grid → metric triangle mesh (DESIGN §6), and mesh export.
+"""Occupancy grid → metric triangle mesh (docs/design.md §6), and mesh export.
 
 Marching cubes (scikit-image) runs on the occupancy probabilities padded by one voxel of zeros
 so the surface always closes, at the decision threshold; vertices (in fractional voxel indices)

@@ -61,7 +61,7 @@ GRID_CONVENTION: dict[str, Any] = {
     "inputs": "observed surface points voxelized, occupied = 1",
     "targets": "complete object(s), solid",
 }
-"""Stored in every checkpoint (DESIGN.md §3); training may overwrite it via ``grid=...``."""
+"""Stored in every checkpoint (docs/design.md §3); training may overwrite it via ``grid=...``."""
 
 WEIGHTS_DIR = Path(__file__).resolve().parent / "weights"
 

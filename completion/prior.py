@@ -1,10 +1,10 @@
 """The input-free reference of the evaluation: one fixed shape placed in every view's grid.
 
-Each view's grid is fitted to what the camera saw (DESIGN §3), so the frame alone already says
-where the object is and how big: a shape that ignores the input scores well above zero. The prior
-row of ``python -m grasp.evaluate`` measures how much: it is the voxel-wise mean of the training
-targets of the condition (all views), thresholded where the validation set's mean Jaccard is
-highest. A model row is only worth what it adds over this row.
+Each view's grid is fitted to what the camera saw (docs/design.md §3), so the frame alone already
+says where the object is and how big: a shape that ignores the input scores well above zero. The
+prior row of ``python -m grasp.evaluate`` measures how much: it is the voxel-wise mean of the
+training targets of the condition (all views), thresholded where the validation set's mean Jaccard
+is highest. A model row is only worth what it adds over this row.
 
     python -m completion.prior --train-dir data/train --val-dir data/val \\
         --out completion/weights/prior.npz

@@ -1,4 +1,4 @@
-"""The paper's five experimental conditions as simulated 12-view sequences (DESIGN §4).
+"""The paper's five experimental conditions as simulated 12-view sequences (docs/design.md §4).
 
 ``make_sequence(condition, split, index, seed)`` is deterministic in its arguments: it draws
 the objects, their poses and the camera path from one generator seeded by

@@ -1,7 +1,7 @@
 """``CompletionStream``: feed views one at a time into a loaded model, get the completion.
 
 Each view, given as a depth image + intrinsics (+ mask), a camera-frame point cloud or a ready
-grid, is voxelized in its own grid exactly as training did (DESIGN §3: the Varley fit on the
+grid, is voxelized in its own grid exactly as training did (docs/design.md §3: the Varley fit on the
 view's points, or, while the camera has not moved (a view with the same camera pose as the one
 before), on every point seen from that pose; a view with no object points keeps the previous
 view's grid, re-expressed in the new camera frame when both views came with camera poses: one

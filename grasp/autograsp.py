@@ -1,6 +1,6 @@
 """GraspIt!-style autograsp of the BarrettHand on a triangle mesh (kinematic, deterministic).
 
-Semantics (hands/barrett/README.md, DESIGN.md §7):
+Semantics (hands/barrett/README.md, docs/design.md §7):
 
 1. The spread is set first and never moved.
 2. Approach (optional): while the open hand overlaps the object, back off along the palm's −z in
@@ -39,7 +39,7 @@ Known simplifications: a link entirely inside a closed mesh without crossing its
 in collision (triangle soup, as in GraspIt! and pybullet); there is no dynamics (see
 ``grasp.physics`` for a lift test).
 
-This module must not import torch (DESIGN.md §2).
+This module must not import torch (docs/design.md §2).
 """
 
 from __future__ import annotations

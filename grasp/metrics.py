@@ -1,4 +1,4 @@
-"""Completion and grasp metrics of the paper's Tables I–III (DESIGN §6–§7).
+"""Completion and grasp metrics of the paper's Tables I–III (docs/design.md §6–§7).
 
 - :func:`jaccard`: intersection over union of two thresholded 40³ grids.
 - :func:`fscore` / :func:`fscore_grids`: F-score@d after Tatarchenko et al. 2019
@@ -282,7 +282,7 @@ def fscore_grids(
 
 @dataclass(frozen=True)
 class JointError:
-    """Grasp joint error of one prediction (DESIGN §7).
+    """Grasp joint error of one prediction (docs/design.md §7).
 
     error_deg : mean |θ_pred − θ_gt| over the 8 joints, None when there was no grasp to compare
     per_joint_deg : (8,) |θ_pred − θ_gt| in the joint order of :data:`JOINT_NAMES`, or None
@@ -347,7 +347,7 @@ def grasp_joint_error(
     backoff: float | None = None,
     planner_options: dict | None = None,
 ) -> JointError:
-    """Table III's grasp joint error of one completion (DESIGN §7, Varley et al. 2017).
+    """Table III's grasp joint error of one completion (docs/design.md §7, Varley et al. 2017).
 
     prediction : the completed mesh (None when the completion is empty)
     truth : the ground-truth object mesh in the same frame (a ``trimesh.Trimesh``, or a

@@ -16,7 +16,7 @@ a request is sent. Service errors become exceptions that carry the service's mes
 :class:`NothingSeen`, :class:`Unauthorized`); a 503 (the service busy or full) and a refused
 connection are retried with backoff, honouring ``Retry-After``, a bounded number of times.
 Frames: ``*_pose`` is palm→camera of the latest view, ``*_pose_world`` palm→world when the views
-came with ``camera_pose`` (DESIGN §3, §7).
+came with ``camera_pose`` (docs/design.md §3, §7).
 """
 
 from __future__ import annotations

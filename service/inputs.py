@@ -357,7 +357,7 @@ def _grid(grid: GridIn) -> VoxelGrid:
         raise InputError(
             loc,
             "grid_to_camera must be pitch × identity plus a translation (grid axes along the "
-            f"camera axes, DESIGN §3) with a pitch of {MIN_PITCH_M:g}…{MAX_PITCH_M:g} m; "
+            f"camera axes, docs/design.md §3) with a pitch of {MIN_PITCH_M:g}…{MAX_PITCH_M:g} m; "
             f"got the 3×3 part {np.round(scale, 9).tolist()}",
         )
     centre = indices_to_points(np.full((1, 3), (GRID_SIZE - 1) / 2.0), t)[0]

@@ -1,7 +1,7 @@
 """Request and response bodies of the HTTP API (JSON; arrays as nested lists, binary as base64).
 
-Frames (DESIGN §3): points, poses and grids are in the camera frame of the view they came with
-(OpenCV optical: x right, y down, z forward, metres); ``camera_pose`` is camera→world.
+Frames (docs/design.md §3): points, poses and grids are in the camera frame of the view they
+came with (OpenCV optical: x right, y down, z forward, metres); ``camera_pose`` is camera→world.
 """
 
 from __future__ import annotations

@@ -1,7 +1,7 @@
 """The session store interface: what the pipeline uses, whichever engine keeps the sessions.
 
-Two engines implement :class:`Store` (DESIGN §9): :class:`service.sessions.SessionStore` keeps
-sessions in one SQLite file (the embedded default) and
+Two engines implement :class:`Store` (docs/design.md §9):
+:class:`service.sessions.SessionStore` keeps sessions in one SQLite file (the embedded default) and
 :class:`service.redis_store.RedisSessionStore` keeps them in Redis so that several replicas share
 them (``GRASP_STORE_URL``); :func:`service.sessions.open_store` picks one from the settings.
 

@@ -1,7 +1,7 @@
 """Canonical grasp scenes for the BarrettHand regression tests (shared by the grasp test files).
 
 Every scene puts the palm at the world origin looking up (+z) unless it says otherwise, so the
-numbers read directly in the palm frame of DESIGN.md §7: fingers 1 and 2 on the +y side (spread
+numbers read directly in the palm frame of docs/design.md §7: fingers 1 and 2 on the +y side (spread
 0), finger 3 on the −y side. Objects stand on or above the plane z = 0.05 m in front of the palm,
 which starts 5 cm below them and approaches.
 

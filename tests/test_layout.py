@@ -1,4 +1,4 @@
-"""The layout DESIGN.md §2 asks for: imports point one way, no two modules import each other
+"""The layout docs/design.md §2 asks for: imports point one way, no two modules import each other
 (not even through an import inside a function), and every file reads in one sitting."""
 
 from __future__ import annotations

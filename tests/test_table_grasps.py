@@ -1,4 +1,4 @@
-"""The table as an obstacle (DESIGN.md §7, "Support plane"): autograsp, screen and planner.
+"""The table as an obstacle (docs/design.md §7, "Support plane"): autograsp, screen and planner.
 
 Hand-computed cases use only the hand's dimensions (hands/barrett/params.py, BARRETT.md): J2 axes
 on the palm face 50 mm out, proximal link 70 mm (26 mm thick), distal link 55 mm (20 mm thick)

@@ -57,7 +57,7 @@ Numbers (:class:`LiftSettings`, in one place; the hand's facts: ``hands/barrett/
 - Sim time: 0.5 s approach, up to 3.5 s closing, 3.1 s loaded (settle 0.25, lift 1.0, hold 0.25,
   shakes 1.33, hold 0.25); about 1–2 s of wall time on one core.
 
-This module must not import torch (DESIGN.md §2).
+This module must not import torch (docs/design.md §2).
 """
 
 from grasp.physics.body import convex_decomposition, mass_properties, read_pieces

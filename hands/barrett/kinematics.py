@@ -29,7 +29,7 @@ import numpy as np
 from hands.barrett.params import BH8_282, BarrettParams
 
 FINGERS: tuple[str, ...] = ("f1", "f2", "f3")
-#: The 8 joints in API order (DESIGN.md §7).
+#: The 8 joints in API order (docs/design.md §7).
 JOINT_NAMES: tuple[str, ...] = (
     "f1_spread",
     "f1_prox",

@@ -8,7 +8,7 @@ with the quoted dimensions; they only affect the collision shapes and the URDF i
 
 Lengths are metres, angles degrees (as the docs quote them); code converts to radians.
 
-Palm frame (DESIGN.md §7): palm face at z = 0, approach along +z, the palm body below the face.
+Palm frame (docs/design.md §7): palm face at z = 0, approach along +z, the palm body below the face.
 Finger 1 spreads about the axis at x = +25 mm, finger 2 about x = −25 mm (mirror image), finger 3
 sits at y = −50 mm with no spread. At spread 0 fingers 1 and 2 point along +y, opposite finger 3.
 """
