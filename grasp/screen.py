@@ -158,9 +158,7 @@ def finger_reach(params: BarrettParams = BH8_282) -> float:
     kinematics = _kinematics(params)
     below = SupportPlane(np.array([0.0, 0.0, -1.0]), 0.0)  # height = depth in the palm frame
     deepest = 0.0
-    for q in np.radians(np.arange(0.0, params.finger_dof_max_deg + 0.5, 1.0)):
-        j2, j3 = min(q, np.radians(params.proximal_max_deg)), params.distal_ratio * q
-        links = kinematics.link_poses(np.array([0.0, j2, j3, 0.0, j2, j3, j2, j3]))
+    for links in _free_closing(params):
         for prim in kinematics.primitives_of("f1_prox") + kinematics.primitives_of("f1_dist"):
             depth = -below.lowest(prim.kind, prim.size, links[prim.link] @ prim.pose)
             deepest = max(deepest, float(depth))
@@ -174,16 +172,21 @@ def fingertip_span(params: BarrettParams = BH8_282) -> float:
     the BH8-282 (finger 3's deepest point lies 57 mm from the palm's axis)."""
     kinematics = _kinematics(params)
     deepest, across = -np.inf, 0.0
-    for q in np.radians(np.arange(0.0, params.finger_dof_max_deg + 0.5, 1.0)):
-        j2, j3 = min(q, np.radians(params.proximal_max_deg)), params.distal_ratio * q
-        links = kinematics.link_poses(np.array([0.0, j2, j3, 0.0, j2, j3, j2, j3]))
+    for links in _free_closing(params):
         for prim in kinematics.primitives_of("f3_dist"):
-            corners = _corners(prim.kind, prim.size)
-            points = (links[prim.link] @ prim.pose @ corners.T)[:3].T
+            points = (links[prim.link] @ prim.pose @ _corners(prim.kind, prim.size).T)[:3].T
             k = int(np.argmax(points[:, 2]))
             if points[k, 2] > deepest:
                 deepest, across = points[k, 2], abs(points[k, 1])
     return 2.0 * across
+
+
+def _free_closing(params: BarrettParams):
+    """Every link's pose (palm frame) along a free closing, J3 = J2 / 3, in 1° steps of the DOF."""
+    kinematics = _kinematics(params)
+    for q in np.radians(np.arange(0.0, params.finger_dof_max_deg + 0.5, 1.0)):
+        j2, j3 = min(q, np.radians(params.proximal_max_deg)), params.distal_ratio * q
+        yield kinematics.link_poses(np.array([0.0, j2, j3, 0.0, j2, j3, j2, j3]))
 
 
 def _corners(kind: str, size) -> np.ndarray:
