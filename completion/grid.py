@@ -22,6 +22,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import ndimage
 
+from completion.depth import DEPTH_FILTER, DepthFilter
+
 GRID_SIZE = 40
 GRID_SHAPE = (GRID_SIZE, GRID_SIZE, GRID_SIZE)
 FIT_CENTER_INDEX = np.array([20.0, 20.0, 18.0])
@@ -154,8 +156,9 @@ def camera_still(camera_to_world: np.ndarray | None, previous: np.ndarray | None
 def fit_seen(
     points: np.ndarray, seen: np.ndarray | None = None
 ) -> tuple[np.ndarray | None, np.ndarray | None]:
-    """The fit for a view from a camera that has not moved (docs/design.md §3): the Varley fit over
-    the bounding box of this view's points together with ``seen``, the (2, 3) [lo, hi] bounds of
+    """The fit of a view's observed points (docs/design.md §3): the Varley fit over the bounding box
+    of this view's points (the ones :meth:`completion.depth.DepthFilter.inliers` keeps: a few
+    stray points do not stretch it) together with ``seen``, the (2, 3) [lo, hi] bounds of
     every point seen earlier from the same pose (None for a new pose: the plain per-view fit).
 
     Returns ``(grid_to_camera, bounds)``; both None when there are no points now and none seen
@@ -163,7 +166,8 @@ def fit_seen(
     what is visible now, so an object that moves behind another stays inside it.
     """
     pts = as_points(points)
-    bounds = np.stack([pts.min(axis=0), pts.max(axis=0)]) if len(pts) else None
+    framing = pts[DEPTH_FILTER.inliers(pts)]  # stray points do not stretch the box
+    bounds = np.stack([framing.min(axis=0), framing.max(axis=0)]) if len(pts) else None
     if seen is not None:
         seen = np.asarray(seen, dtype=np.float64)
         if seen.shape != (2, 3) or not np.isfinite(seen).all():
@@ -324,12 +328,19 @@ def sample_surface(vertices: np.ndarray, faces: np.ndarray, *, spacing: float) -
 
 
 def depth_to_points(
-    depth: np.ndarray, intrinsics: Intrinsics, mask: np.ndarray | None = None
+    depth: np.ndarray,
+    intrinsics: Intrinsics,
+    mask: np.ndarray | None = None,
+    *,
+    cleaning: DepthFilter | None = DEPTH_FILTER,
 ) -> np.ndarray:
-    """Back-project a metric depth image (H, W) to camera-frame points (n, 3).
+    """Back-project a metric depth image (H, W) to camera-frame points (n, 3): the one path from
+    a depth image to observed points (training data, evaluation, stream and service).
 
     Pixels with depth ≤ 0 or non-finite are treated as missing (no return), as depth cameras
-    report them. With a mask (H, W) bool/uint8, only pixels where it is non-zero are used.
+    report them, and so are the flying pixels ``cleaning`` finds (:mod:`completion.depth`: a
+    pixel without support from its neighbours; None back-projects every return). With a mask
+    (H, W) bool/uint8, only pixels where it is non-zero are used.
     """
     d = np.asarray(depth, dtype=np.float64)
     if d.shape != (intrinsics.height, intrinsics.width):
@@ -337,7 +348,10 @@ def depth_to_points(
             f"depth must be (height, width) = ({intrinsics.height}, {intrinsics.width}) "
             f"as the intrinsics say, got {d.shape}"
         )
-    valid = np.isfinite(d) & (d > 0)
+    if cleaning is None:
+        valid = np.isfinite(d) & (d > 0)
+    else:
+        valid = cleaning.supported(d, intrinsics.fx, intrinsics.fy)
     if mask is not None:
         m = np.asarray(mask)
         if m.shape != d.shape:

@@ -3,6 +3,7 @@ import pytest
 import trimesh
 
 from completion import grid as G
+from completion.depth import DEPTH_FILTER
 
 
 def test_round_trip_points_indices_within_half_voxel():
@@ -101,8 +102,9 @@ def test_depth_to_points_checks_shapes():
         G.depth_to_points(np.ones((10, 10)), intr)
     with pytest.raises(ValueError, match="mask"):
         G.depth_to_points(np.ones((240, 320)), intr, np.ones((10, 10)))
-    pts = G.depth_to_points(np.where(np.eye(240, 320) > 0, 1.0, np.nan), intr)
-    assert len(pts) == 240  # NaN and non-positive depth are missing returns
+    line = np.where(np.eye(240, 320) > 0, 1.0, np.nan)
+    assert len(G.depth_to_points(line, intr, cleaning=None)) == 240  # NaN: no return
+    assert len(G.depth_to_points(line, intr)) == 238  # cleaned: the line's ends lack support
 
 
 def test_voxel_grid_pack_round_trip():
@@ -116,10 +118,12 @@ def test_fit_seen_frames_every_point_seen_from_a_still_camera():
     rng = np.random.default_rng(0)
     left = rng.normal(scale=0.02, size=(100, 3)) + [-0.1, 0.0, 0.5]
     right = rng.normal(scale=0.02, size=(100, 3)) + [0.1, 0.0, 0.6]
+    framing = [p[DEPTH_FILTER.inliers(p)] for p in (left, right)]  # sparse tails left out
+    assert 0.5 * len(left) < len(framing[0]) < len(left)
     t, seen = G.fit_seen(left)  # a new pose: the plain per-view fit
-    np.testing.assert_array_equal(t, G.fit_grid(left))
+    np.testing.assert_array_equal(t, G.fit_grid(framing[0]))
     t, seen = G.fit_seen(right, seen)  # the same pose again: the box of both
-    np.testing.assert_array_equal(t, G.fit_grid(np.concatenate([left, right])))
+    np.testing.assert_array_equal(t, G.fit_grid(np.concatenate(framing)))
     assert G.in_grid(G.points_to_indices(left, t)).all()
     t_empty, kept = G.fit_seen(np.zeros((0, 3)), seen)  # nothing visible now: the same grid
     np.testing.assert_array_equal(t_empty, t)
