@@ -9,7 +9,8 @@
 ``latency_ms[L]`` is the median wall time of one ``model.step`` (batch 1, CPU, inference mode)
 taken from the state after L earlier views, ``cpu_ms[L]`` the median CPU time of this thread for
 the same steps (robust to other processes on a shared machine when ``--threads 1``);
-``state_bytes[L]`` is the length of
+``input_ms`` is what a depth image costs before the model, with :mod:`completion.depth`'s
+cleaning and without (:func:`bench_input`). ``state_bytes[L]`` is the length of
 ``state_to_bytes(state)`` after L views, i.e. what a service stores per session. Between
 checkpoints the stream is advanced without decoding (``model.advance``), and only ``--repeats``
 steps are timed at each checkpoint (each from the same state, the checkpoints in turn), so 1000
@@ -113,6 +114,40 @@ def bench_model(
     }
 
 
+def bench_input(repeats: int = DEFAULT_REPEATS) -> dict[str, Any]:
+    """What a depth image costs before the model (:func:`completion.grid.depth_to_points` and
+    :func:`completion.grid.fit_seen`), with the cleaning of :mod:`completion.depth` and without:
+    median milliseconds over ``repeats`` on a tabletop view through the sensor model (320×240,
+    and the same view at 640×480, every pixel repeated 2×2, intrinsics scaled)."""
+    import numpy as np
+
+    from completion import grid
+    from completion.scenes import make_sequence
+
+    seq = make_sequence("tabletop", "test", 0, 0, views=2, keep_depth=True)
+    k = seq.meta["intrinsics"]
+    small = grid.Intrinsics(**k)
+    large = grid.Intrinsics(2 * k["fx"], 2 * k["fy"], 2 * k["cx"] + 0.5, 2 * k["cy"] + 0.5,
+                            2 * k["width"], 2 * k["height"])
+    images = {
+        "320x240": (seq.depth[0], seq.mask[0] >= 0, small),
+        "640x480": (np.repeat(np.repeat(seq.depth[0], 2, 0), 2, 1),
+                    np.repeat(np.repeat(seq.mask[0] >= 0, 2, 0), 2, 1), large),
+    }
+    out: dict[str, Any] = {}
+    for name, (depth, mask, intrinsics) in images.items():
+        times: dict[str, list[float]] = {"raw": [], "cleaned": []}
+        for _ in range(repeats):
+            for key, cleaning in (("raw", None), ("cleaned", grid.DEPTH_FILTER)):
+                start = time.perf_counter()
+                points = grid.depth_to_points(depth, intrinsics, mask, cleaning=cleaning)
+                grid.fit_seen(points, cleaning=cleaning)
+                times[key].append(time.perf_counter() - start)
+        out[name] = {key: round(1000.0 * statistics.median(v), 2) for key, v in times.items()}
+        out[name]["points"] = len(grid.depth_to_points(depth, intrinsics, mask))
+    return out
+
+
 def run_bench(
     models: Sequence[str] = DEFAULT_MODELS,
     *,
@@ -138,6 +173,7 @@ def run_bench(
         torch.set_num_threads(previous)
     return {
         "models": results,
+        "input_ms": bench_input(repeats),
         "device": "cpu",
         "threads": threads,
         "batch": 1,

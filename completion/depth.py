@@ -18,6 +18,8 @@ of observed points is fitted through :func:`completion.grid.fit_seen`, which app
    neighbours are continuous with it: a surface pixel has several (up to 80° of slant), a thin
    handle one or two pixels wide has its neighbours along the handle, a flying pixel hanging
    behind the rim has none once it is more than l / tan 10° (about 1 cm at 0.6 m) from it.
+   Only pixels of the object's mask count as neighbours, where there is a mask: a flying pixel
+   that fell almost onto the table behind the rim is not held up by the table.
 2. **The grid's box ignores sparse points.** The Varley fit frames the bounding box of the
    observed points; a point counts toward it only when the 3 × 3 × 3 cube of ``outlier_cell_m``
    (1 cm) cells around it holds at least ``outlier_neighbours`` (4) other points and at least
@@ -71,11 +73,17 @@ class DepthFilter:
         if not 0 <= self.outlier_share < 1:
             raise ValueError(f"outlier_share must be in [0, 1), got {self.outlier_share}")
 
-    def supported(self, depth: np.ndarray, fx: float, fy: float) -> np.ndarray:
+    def supported(
+        self, depth: np.ndarray, fx: float, fy: float, mask: np.ndarray | None = None
+    ) -> np.ndarray:
         """(H, W) bool: pixels with a return (finite, > 0) and at least ``min_support``
-        continuous neighbours; ``fx``, ``fy`` the focal lengths in pixels."""
+        continuous neighbours; ``fx``, ``fy`` the focal lengths in pixels. With a ``mask`` (H, W)
+        bool, only pixels inside it support (the table behind an object's rim does not hold a
+        flying pixel up) and only they are kept."""
         z = np.asarray(depth, dtype=np.float64)
         hit = np.isfinite(z) & (z > 0)
+        if mask is not None:
+            hit &= np.asarray(mask, dtype=bool)
         z = np.where(hit, z, 0.0)
         if self.min_support == 0:
             return hit

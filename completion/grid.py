@@ -154,19 +154,23 @@ def camera_still(camera_to_world: np.ndarray | None, previous: np.ndarray | None
 
 
 def fit_seen(
-    points: np.ndarray, seen: np.ndarray | None = None
+    points: np.ndarray,
+    seen: np.ndarray | None = None,
+    *,
+    cleaning: DepthFilter | None = DEPTH_FILTER,
 ) -> tuple[np.ndarray | None, np.ndarray | None]:
     """The fit of a view's observed points (docs/design.md §3): the Varley fit over the bounding box
     of this view's points (the ones :meth:`completion.depth.DepthFilter.inliers` keeps: a few
     stray points do not stretch it) together with ``seen``, the (2, 3) [lo, hi] bounds of
     every point seen earlier from the same pose (None for a new pose: the plain per-view fit).
+    ``cleaning=None`` frames every point.
 
     Returns ``(grid_to_camera, bounds)``; both None when there are no points now and none seen
     (the caller carries the previous grid). With a still camera the grid never shrinks around
     what is visible now, so an object that moves behind another stays inside it.
     """
     pts = as_points(points)
-    framing = pts[DEPTH_FILTER.inliers(pts)]  # stray points do not stretch the box
+    framing = pts if cleaning is None else pts[cleaning.inliers(pts)]  # strays do not stretch it
     bounds = np.stack([framing.min(axis=0), framing.max(axis=0)]) if len(pts) else None
     if seen is not None:
         seen = np.asarray(seen, dtype=np.float64)
@@ -187,12 +191,15 @@ def view_grid(
     previous_grid: np.ndarray | None = None,
     previous_camera: np.ndarray | None = None,
     seen: np.ndarray | None = None,
+    *,
+    cleaning: DepthFilter | None = DEPTH_FILTER,
 ) -> tuple[np.ndarray | None, np.ndarray | None]:
     """The grid of a new view (docs/design.md §3), one rule for the training data and the service.
 
     points : (n, 3) this view's observed object points; camera_to_world : its pose, if known;
     previous_grid, previous_camera, seen : the previous view's grid, pose and the bounds this
-    function returned with it. While the camera stands still the grid frames every point seen
+    function returned with it; cleaning : :mod:`completion.depth`'s rule for the box (None: every
+    point frames it). While the camera stands still the grid frames every point seen
     from it (:func:`fit_seen`); a view with no points (and none seen from here) keeps the previous
     grid, where it was in the world when both poses are known (:func:`carry_grid`).
 
@@ -200,7 +207,7 @@ def view_grid(
     any view had points.
     """
     still = camera_still(camera_to_world, previous_camera)
-    fitted, seen = fit_seen(points, seen if still else None)
+    fitted, seen = fit_seen(points, seen if still else None, cleaning=cleaning)
     if fitted is not None or previous_grid is None:
         return fitted, seen
     if camera_to_world is None or previous_camera is None:
@@ -339,8 +346,8 @@ def depth_to_points(
 
     Pixels with depth ≤ 0 or non-finite are treated as missing (no return), as depth cameras
     report them, and so are the flying pixels ``cleaning`` finds (:mod:`completion.depth`: a
-    pixel without support from its neighbours; None back-projects every return). With a mask
-    (H, W) bool/uint8, only pixels where it is non-zero are used.
+    pixel without support from its neighbours in the mask; None back-projects every return).
+    With a mask (H, W) bool/uint8, only pixels where it is non-zero are used.
     """
     d = np.asarray(depth, dtype=np.float64)
     if d.shape != (intrinsics.height, intrinsics.width):
@@ -348,15 +355,16 @@ def depth_to_points(
             f"depth must be (height, width) = ({intrinsics.height}, {intrinsics.width}) "
             f"as the intrinsics say, got {d.shape}"
         )
-    if cleaning is None:
-        valid = np.isfinite(d) & (d > 0)
-    else:
-        valid = cleaning.supported(d, intrinsics.fx, intrinsics.fy)
+    m = None
     if mask is not None:
         m = np.asarray(mask)
         if m.shape != d.shape:
             raise ValueError(f"mask must have the depth image's shape {d.shape}, got {m.shape}")
-        valid &= m.astype(bool)
+        m = m.astype(bool)
+    if cleaning is None:
+        valid = np.isfinite(d) & (d > 0) & (True if m is None else m)
+    else:
+        valid = cleaning.supported(d, intrinsics.fx, intrinsics.fy, m)
     v, u = np.nonzero(valid)
     z = d[v, u]
     x = (u - intrinsics.cx) * z / intrinsics.fx

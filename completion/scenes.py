@@ -45,6 +45,7 @@ import numpy as np
 import trimesh
 
 from completion import grid
+from completion.depth import DEPTH_FILTER, DepthFilter
 from completion.objects import SPLITS, load_object, object_ids
 from completion.render import Renderer, SensorModel, look_at
 
@@ -274,6 +275,7 @@ def make_sequence(
     sensor: SensorModel = DEFAULT_SENSOR,
     keep_depth: bool = False,
     renderer: Renderer | None = None,
+    cleaning: DepthFilter | None = DEPTH_FILTER,
 ) -> Sequence:
     """Render and voxelize one sequence of ``condition``; deterministic in its arguments.
 
@@ -282,6 +284,8 @@ def make_sequence(
     noise : pass the depth through ``sensor`` (None: the condition's default, on for
         :data:`NOISY_BY_DEFAULT`). The sensor draws from its own generator, so a sequence with
         noise shows the same scene as the one without.
+    cleaning : how a depth image becomes points and a grid (:mod:`completion.depth`, the
+        service's and the training data's; None: every return, the plain box).
     """
     if condition not in CONDITIONS:
         raise ValueError(f"condition must be one of {CONDITIONS}, got {condition!r}")
@@ -334,7 +338,7 @@ def make_sequence(
             noise = condition in NOISY_BY_DEFAULT
         noise_rng = _rng(condition, split, index, seed, 1) if noise else None
         seq = _observe(r, condition, meshes, object_poses, cameras,
-                       sensor if noise else None, noise_rng, keep_depth)
+                       sensor if noise else None, noise_rng, keep_depth, cleaning)
     finally:
         if own:
             r.close()
@@ -367,6 +371,7 @@ def _observe(
     sensor: SensorModel | None,
     noise_rng: np.random.Generator | None,
     keep_depth: bool,
+    cleaning: DepthFilter | None,
 ) -> Sequence:
     views = len(cameras)
     inputs = np.zeros((views, *grid.GRID_SHAPE), dtype=bool)
@@ -381,10 +386,11 @@ def _observe(
         mask[mask >= len(meshes)] = -1  # scenery (the table): seen, never segmented
         if sensor is not None:
             depth = sensor.apply(depth, noise_rng)
-        points = grid.depth_to_points(depth, r.intrinsics, mask >= 0)
+        points = grid.depth_to_points(depth, r.intrinsics, mask >= 0, cleaning=cleaning)
         labels = mask[(mask >= 0) & (depth > 0)]
         visible.append([int((labels == i).sum()) for i in range(len(meshes))])
-        previous, seen = grid.view_grid(points, camera, previous, previous_camera, seen)
+        previous, seen = grid.view_grid(points, camera, previous, previous_camera, seen,
+                                        cleaning=cleaning)
         if previous is None:  # nothing seen yet: frame the objects where they are
             previous = grid.fit_grid(_camera_vertices(meshes, poses, camera))
         previous_camera = camera

@@ -28,6 +28,7 @@ moving average of the weights is what is validated and written), and ``<run-dir>
 Subcommands (:mod:`completion.validation`)::
 
     python -m completion.train select-threshold completion/weights/*.pt   # one threshold for all
+    python -m completion.train select-threshold --threshold 0.5 completion/weights/*.pt  # given
     python -m completion.train per-view completion/weights/mvp.pt data/val  # what the memory adds
     python -m completion.train model-card completion/weights/*.pt          # the card's tables
 """
@@ -521,13 +522,25 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
     if argv[:1] == ["select-threshold"]:
-        paths = [Path(a) for a in argv[1:]]
+        fixed, rest = None, argv[1:]
+        if rest[:1] == ["--threshold"]:
+            try:
+                fixed, rest = float(rest[1]), rest[2:]
+            except (IndexError, ValueError):
+                fixed, rest = float("nan"), []
+        paths = [Path(a) for a in rest]
         missing = [str(a) for a in paths if not a.is_file()]
         if not paths or missing:
-            print("usage: python -m completion.train select-threshold CKPT [CKPT …] "
-                  f"(checkpoint files; missing: {missing})", file=sys.stderr)
+            print("usage: python -m completion.train select-threshold [--threshold T] CKPT "
+                  f"[CKPT …] (checkpoint files; missing: {missing}; T: one of the validation "
+                  "sweep's thresholds, default: the best mean validation Jaccard)",
+                  file=sys.stderr)
             return 2
-        select_threshold(paths)
+        try:
+            select_threshold(paths, fixed)
+        except ValueError as error:
+            print(f"select-threshold: {error}", file=sys.stderr)
+            return 2
         return 0
     if argv[:1] == ["per-view"]:
         if len(argv) not in (2, 3) or not Path(argv[1]).is_file():

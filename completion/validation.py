@@ -111,14 +111,19 @@ def per_view(path: Path, val_dir: Path, threshold: float | None = None) -> dict:
     return {"checkpoint": str(path), "threshold": thr, "per_view_jaccard": out}
 
 
-def select_threshold(paths: list[Path]) -> float:
+def select_threshold(paths: list[Path], fixed: float | None = None) -> float:
     """Choose one decision threshold for every model: the one with the best validation Jaccard
-    averaged over models and conditions (read from each checkpoint's stored sweep), and write it
+    averaged over models and conditions (read from each checkpoint's stored sweep), or ``fixed``
+    (one of the sweep's values, chosen on another criterion the model card gives), and write it
     into every checkpoint (its ``threshold`` entry, which :func:`load_model` applies)."""
     sweeps = [read_checkpoint(p)["val"] for p in paths]
     keys = sorted(set.intersection(*(set(s) for s in sweeps)))
     score = {k: float(np.mean([s[k]["mean"] for s in sweeps])) for k in keys}
     best = max(keys, key=lambda k: score[k])
+    if fixed is not None:
+        if f"{fixed:.2f}" not in score:
+            raise ValueError(f"--threshold must be one of the sweep's values {keys}, got {fixed}")
+        best = f"{fixed:.2f}"
     for p in paths:
         payload = read_checkpoint(p)
         payload["threshold"] = float(best)

@@ -57,6 +57,24 @@ def test_flying_pixels_go_the_box_and_a_thin_handle_stay(box_wall, seed):
     assert _supported(full)[own].mean() >= 0.98
 
 
+def test_the_table_behind_a_rim_does_not_hold_a_flying_pixel_up():
+    """A 2 cm plate 2 cm in front of a wall: flying pixels of its rim fall towards the wall, and
+    those that land near it are continuous with the wall's pixels. With the object's mask only
+    the object's pixels support, and every one more than 1.5 cm behind the plate goes."""
+    with Renderer() as r:
+        r.add_mesh(trimesh.creation.box((0.1, 0.1, 0.02)), _at(0.0, 0.0, 0.5))
+        r.add_mesh(trimesh.creation.box((1.5, 1.5, 0.02)), _at(0.0, 0.0, 0.54))
+        depth, seg = r.render(np.eye(4))
+    noisy = FLYING_ONLY.apply(depth, np.random.default_rng(0))
+    plate = seg == 0
+    far = plate & (noisy - depth > 0.015)
+    assert far.sum() > 10
+    assert _supported(noisy)[far].any()  # the wall holds some up
+    masked = DEPTH_FILTER.supported(noisy, INTRINSICS.fx, INTRINSICS.fy, plate)
+    assert not masked[far].any() and not masked[~plate].any()
+    assert masked[plate & (noisy == depth)].mean() >= 0.99
+
+
 def test_a_noiseless_image_keeps_its_returns(box_wall):
     depth, seg = box_wall
     objects = seg >= 0

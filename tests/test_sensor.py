@@ -82,3 +82,23 @@ def test_the_sensor_is_deterministic_in_its_generator(box_on_plane):
     c = SensorModel().apply(depth, np.random.default_rng(6))
     assert a.tobytes() == b.tobytes() != c.tobytes()
     assert (a[depth == 0] == 0).all()  # no return stays no return
+
+
+def test_sensor_parts_table_measures_every_part(capsys):
+    """``python -m grasp.evaluate.sensor_parts`` on one sequence: every part, the noiseless one
+    its own reference, voxel sides of real grids; the raw input is a separate, valid run."""
+    from grasp.evaluate import sensor_parts
+
+    table = sensor_parts.measure("completion/weights/mvp.pt", ["camera_pan"], 1, True, 1)
+    assert list(table) == list(sensor_parts.PARTS)
+    assert table["off"]["camera_pan"]["difference"] == 0.0
+    for cells in table.values():
+        assert 0.0 < cells["camera_pan"]["jaccard"] <= 1.0
+        assert 1.0 < cells["camera_pan"]["voxel_mm"] < 20.0
+    raw = sensor_parts.measure("completion/weights/mvp.pt", ["camera_pan"], 1, False, 1)
+    off = raw["off"]["camera_pan"]["jaccard"]  # noiseless: the cleaning removes next to nothing
+    assert off == pytest.approx(table["off"]["camera_pan"]["jaccard"], abs=0.02)
+    assert raw["all of it"]["camera_pan"]["voxel_mm"] > table["all of it"]["camera_pan"]["voxel_mm"]
+    with pytest.raises(SystemExit):
+        sensor_parts.main(["--conditions", "nowhere"])
+    assert "--conditions must name" in capsys.readouterr().err

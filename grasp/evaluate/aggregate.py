@@ -6,7 +6,7 @@ from collections.abc import Iterable
 
 import numpy as np
 
-from completion.scenes import CONDITIONS, SINGLE_OBJECT_CONDITIONS
+from completion.scenes import CONDITIONS, NOISY_BY_DEFAULT, SINGLE_OBJECT_CONDITIONS
 from grasp.evaluate.config import (
     BENCHMARK_TABLE,
     EVAL_SPLITS,
@@ -96,8 +96,10 @@ def aggregate(results: list[SequenceResult], settings: Settings, table: str) -> 
     conditions = sorted({r.job.condition for r in mine}, key=CONDITIONS.index)
     splits = [s for s in EVAL_SPLITS if any(r.job.split == s for r in mine)]
 
-    def cell(c: str, s: str) -> list[SequenceResult]:
-        return [r for r in mine if r.job.condition == c and r.job.split == s]
+    def cell(c: str, s: str, grasped: bool = False) -> list[SequenceResult]:
+        """The cell's completion sequences (``grasped``: and its grasp-only ones)."""
+        return [r for r in mine if r.job.condition == c and r.job.split == s
+                and (grasped or not r.job.grasp_only)]
 
     tables: dict = {m: {} for m in (*METRICS, GRASP_SUCCESS)}
     counts: dict = {}
@@ -119,7 +121,7 @@ def aggregate(results: list[SequenceResult], settings: Settings, table: str) -> 
                 seqs = cell(c, s)
                 for m in ("jaccard", *FSCORE_METRICS):
                     tables[m][row][c][s] = mean_or_none(np.mean(r.per_view[row][m]) for r in seqs)
-                grasped = [r.grasps[row] for r in seqs if row in r.grasps]
+                grasped = [r.grasps[row] for r in cell(c, s, True) if row in r.grasps]
                 ok = [g for g in grasped if g["error_deg"] is not None]
                 for m, key in _JOINT_KEYS.items():
                     tables[m][row][c][s] = mean_or_none(g[key] for g in ok) if applies else None
@@ -140,7 +142,7 @@ def aggregate(results: list[SequenceResult], settings: Settings, table: str) -> 
         success_counts[row] = {c: {} for c in conditions}
         for c in conditions:
             for s in splits:
-                tested = [r.physics[row] for r in cell(c, s) if row in r.physics]
+                tested = [r.physics[row] for r in cell(c, s, True) if row in r.physics]
                 held = sum(t["success"] for t in tested)
                 applies = c in SINGLE_OBJECT_CONDITIONS and tested
                 tables[GRASP_SUCCESS][row][c][s] = round(held / len(tested), 4) if applies else None
@@ -228,27 +230,39 @@ def _pooled_per_joint(results: list[SequenceResult], settings: Settings) -> dict
     return out
 
 
-def sensor_table(results: list[SequenceResult], settings: Settings, main: dict) -> dict | None:
-    """results.json's ``sensor_noise``: the paper's five conditions (test split) seen through the
-    sensor model, Jaccard per row and condition with its SE, beside the same sequences without it
-    (``noiseless``, the main table) and the difference; None when the run has no sensor table."""
-    mine = [r for r in results if r.job.table == SENSOR_TABLE]
-    if not mine:
+def sensor_table(results: list[SequenceResult], settings: Settings) -> dict | None:
+    """results.json's ``sensor_noise``: the test split's first ``settings.sensor`` sequences of
+    each condition seen through the sensor model (``jaccard``) and the very same sequences without
+    it (``noiseless``), each a mean ± SE per row and condition, and their paired ``difference``
+    (mean ± SE of the per-sequence differences); None when the run has no sensor table. One side
+    comes from the main table where it has the sequence (noiseless for the paper's five, with the
+    sensor for tabletop), the other from the sensor table's own jobs."""
+    if not any(r.job.table == SENSOR_TABLE for r in results):
         return None
-    conditions = sorted({r.job.condition for r in mine}, key=CONDITIONS.index)
+
+    def noisy(r: SequenceResult) -> bool:
+        return r.job.condition in NOISY_BY_DEFAULT if r.job.noise is None else r.job.noise
+
+    sides: dict[tuple[str, bool], dict[int, SequenceResult]] = {}
+    for r in results:
+        main = r.job.table == MAIN_TABLE and r.job.split == "test"
+        if r.job.table == SENSOR_TABLE or (main and r.job.index < settings.sensor):
+            sides.setdefault((r.job.condition, noisy(r)), {})[r.job.index] = r
+    conditions = sorted({c for c, _ in sides}, key=CONDITIONS.index)
     out: dict = {"split": "test", "jaccard": {}, "noiseless": {}, "difference": {}, "n": {}}
     for row in settings.rows:
         for key in ("jaccard", "noiseless", "difference", "n"):
             out[key][row] = {}
         for c in conditions:
-            noisy = [np.mean(r.per_view[row]["jaccard"]) for r in mine if r.job.condition == c]
-            cell = mean_and_se(noisy)
-            clean = main["tables"]["jaccard"][row].get(c, {}).get("test")
-            out["jaccard"][row][c] = cell
-            out["noiseless"][row][c] = clean
-            out["difference"][row][c] = (None if cell is None or clean is None
-                                         else round(cell["mean"] - clean, 4))
-            out["n"][row][c] = len(noisy)
+            with_sensor, without = sides.get((c, True), {}), sides.get((c, False), {})
+            paired = sorted(set(with_sensor) & set(without))
+
+            a, b = ([float(np.mean(side[i].per_view[row]["jaccard"])) for i in paired]
+                    for side in (with_sensor, without))
+            out["jaccard"][row][c] = mean_and_se(a)
+            out["noiseless"][row][c] = mean_and_se(b)
+            out["difference"][row][c] = mean_and_se([x - y for x, y in zip(a, b, strict=True)])
+            out["n"][row][c] = len(paired)
     return out
 
 
@@ -306,7 +320,7 @@ def build_results(results: list[SequenceResult], settings: Settings, wall: dict)
         "jaccard_precision": main["jaccard_precision"],
         "named_objects": None,
         "objects_dir": None,
-        "sensor_noise": sensor_table(results, settings, main),
+        "sensor_noise": sensor_table(results, settings),
         "tabletop_overhead": overhead_table(results, settings),
         "grasp_benchmark": benchmark_table(results),
         "grasp_benchmark_objects": [r.benchmark for r in results

@@ -99,8 +99,10 @@ def build_parser() -> argparse.ArgumentParser:
         "--grasp-count",
         type=integer_at_least(0),
         default=None,
-        help="of those, how many are also grasped (single-object conditions; "
-        f"{_preset_help('grasp_count')})",
+        help="test sequences grasped per single-object condition (the joint error's cells); "
+        "beyond --count, the extra test sequences are grasped only, in no completion table; "
+        "the train split grasps at most --count (with --count and no --grasp-count: at most "
+        f"--count in both; {_preset_help('grasp_count')})",
     )
     p.add_argument(
         "--physics-count",
@@ -147,15 +149,15 @@ def build_parser() -> argparse.ArgumentParser:
         type=integer_at_least(0),
         default=None,
         metavar="N",
-        help="test sequences per paper condition seen through the sensor model (Jaccard; "
-        f"0 = none; {_preset_help('sensor')})",
+        help="test sequences per condition seen with and without the sensor model, paired "
+        f"(Jaccard; 0 = none; {_preset_help('sensor')})",
     )
     p.add_argument(
         "--no-sensor",
         action="store_const",
         const=0,
         dest="sensor",
-        help="skip the table of the paper's five conditions seen through the sensor model",
+        help="skip the table of every condition seen with and without the sensor model",
     )
     p.add_argument(
         "--candidates",
@@ -247,9 +249,8 @@ def settings_from_args(args: argparse.Namespace, parser: argparse.ArgumentParser
         prior_path=str(prior_path) if PRIOR in args.models else "",
         conditions=tuple(args.conditions),
         count=count,
-        grasp_count=min(
-            count, args.grasp_count if args.grasp_count is not None else preset.grasp_count
-        ),
+        grasp_count=args.grasp_count if args.grasp_count is not None
+        else preset.grasp_count if args.count is None else min(count, preset.grasp_count),
         physics_count=args.physics_count
         if args.physics_count is not None
         else preset.physics_count,

@@ -18,7 +18,7 @@ from completion import grid as G
 from completion.bullet import quiet_fds
 from completion.objects import object_ids
 from completion.scenes import (
-    PAPER_CONDITIONS,
+    NOISY_BY_DEFAULT,
     SINGLE_OBJECT_CONDITIONS,
     Sequence,
     object_meshes_in_camera,
@@ -293,7 +293,7 @@ class Evaluator:
                         below_plane(occupied, seq, v))
             if plane:  # the target's own share: voxels the surface cuts, centres just below
                 ceiling.setdefault("below_plane", []).append(below_plane(seq.targets[v], seq, v))
-            if job.light:
+            if job.light or job.grasp_only:
                 continue
             seed = key_seed(s.seed, job.table, job.condition, job.split, job.index, v)
             transform = seq.grid_to_camera[v]
@@ -419,9 +419,16 @@ def make_jobs(settings: Settings) -> list[Job]:
                         and index < min(settings.grasp_count, settings.physics_count),
                     )
                 )
-    for condition in (c for c in settings.conditions if c in PAPER_CONDITIONS):
-        for index in range(settings.sensor):  # the paper's five through the sensor model
-            jobs.append(Job(SENSOR_TABLE, condition, "test", index, noise=True, light=True))
+        if condition in SINGLE_OBJECT_CONDITIONS:  # more grasps for the test's joint error
+            for index in range(settings.count, settings.grasp_count):
+                jobs.append(Job(MAIN_TABLE, condition, "test", index, grasp=True,
+                                grasp_only=True, physics=index < settings.physics_count))
+    for condition in settings.conditions:  # each condition with and without the sensor model,
+        for index in range(settings.sensor):  # the same sequences (the main table has one side)
+            for noise in (True, False):
+                if noise != (condition in NOISY_BY_DEFAULT) or index >= settings.count:
+                    jobs.append(Job(SENSOR_TABLE, condition, "test", index, noise=noise,
+                                    light=True))
     if "tabletop" in settings.conditions:  # searched for overhead views
         for index in range(settings.overhead):
             jobs.append(Job(OVERHEAD_TABLE, "tabletop", "test", index, light=True))
