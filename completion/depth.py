@@ -91,10 +91,12 @@ class DepthFilter:
         h, w = z.shape
         slope = 1.0 / math.tan(math.radians(self.min_angle_deg))
         count = np.zeros(z.shape, dtype=np.int8)
+        gap, tolerance = np.empty_like(z), np.empty_like(z)  # reused: a large image stays cheap
         for dv, du in _NEIGHBOURS:
             nb = padded[1 + dv : 1 + dv + h, 1 + du : 1 + du + w]
-            tolerance = z * (math.hypot(du / fx, dv / fy) * slope)
-            count += (nb > 0) & (np.abs(nb - z) <= tolerance)
+            np.abs(np.subtract(nb, z, out=gap), out=gap)
+            np.multiply(z, math.hypot(du / fx, dv / fy) * slope, out=tolerance)
+            count += (nb > 0) & (gap <= tolerance)
         return hit & (count >= self.min_support)
 
     def inliers(self, points: np.ndarray) -> np.ndarray:
@@ -106,12 +108,16 @@ class DepthFilter:
         cell = np.floor(pts / self.outlier_cell_m).astype(np.int64)
         cell -= cell.min(axis=0) - 1  # ≥ 1, so that every neighbouring cell has an index ≥ 0
         dims = tuple(int(d) for d in cell.max(axis=0) + 2)
-        keys, counts = np.unique(np.ravel_multi_index(cell.T, dims), return_counts=True)
-        around = np.full(len(pts), -1, dtype=np.int64)  # not counting the point itself
+        keys, inverse, counts = np.unique(np.ravel_multi_index(cell.T, dims), return_inverse=True,
+                                          return_counts=True)
+        del cell
+        occupied = np.stack(np.unravel_index(keys, dims), axis=1)  # per occupied cell, not point
+        per_cell = np.zeros(len(keys), dtype=np.int64)
         for offset in _CUBE:
-            key = np.ravel_multi_index((cell + offset).T, dims)
+            key = np.ravel_multi_index((occupied + offset).T, dims)
             at = np.minimum(np.searchsorted(keys, key), len(keys) - 1)
-            around += np.where(keys[at] == key, counts[at], 0)
+            per_cell += np.where(keys[at] == key, counts[at], 0)
+        around = per_cell[inverse.reshape(-1)] - 1  # not counting the point itself
         dense = (around >= self.outlier_neighbours) & (
             around >= self.outlier_share * float(np.median(around)))
         return dense if dense.sum() * 2 >= len(pts) else keep
