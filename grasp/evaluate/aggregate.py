@@ -256,7 +256,6 @@ def sensor_table(results: list[SequenceResult], settings: Settings) -> dict | No
         for c in conditions:
             with_sensor, without = sides.get((c, True), {}), sides.get((c, False), {})
             paired = sorted(set(with_sensor) & set(without))
-
             a, b = ([float(np.mean(side[i].per_view[row]["jaccard"])) for i in paired]
                     for side in (with_sensor, without))
             out["jaccard"][row][c] = mean_and_se(a)

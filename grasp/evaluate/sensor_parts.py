@@ -40,20 +40,20 @@ def _load(weights: str) -> None:
     _MODEL = load_model(weights).eval()
 
 
-def _one(job: tuple[str, str, int, bool, float]) -> tuple[str, str, float, float]:
+def _one(job: tuple[str, str, int, bool]) -> tuple[str, str, float, float]:
     import torch
 
     from completion import grid
     from completion.depth import DEPTH_FILTER
     from completion.scenes import make_sequence
 
-    part, condition, index, clean, threshold = job
+    part, condition, index, clean = job
     sensor = PARTS[part]
     seq = make_sequence(condition, "test", index, 0, noise=sensor is not None,
                         sensor=sensor or SensorModel(), cleaning=DEPTH_FILTER if clean else None)
     with torch.no_grad():
         p = torch.sigmoid(_MODEL(torch.from_numpy(seq.inputs[None].astype(np.float32))))[0]
-    jaccard = float(grid.jaccard(p.numpy() >= threshold, seq.targets).mean())
+    jaccard = float(grid.jaccard(p.numpy() >= _MODEL.threshold, seq.targets).mean())
     side = float(np.mean([grid.pitch_of(t) for t in seq.grid_to_camera]))
     return part, condition, jaccard, side
 
@@ -63,10 +63,7 @@ def measure(weights: str, conditions: Sequence[str], count: int, clean: bool,
     """part -> condition -> {"jaccard", "difference", "voxel_mm"} (means over ``count``)."""
     from multiprocessing import Pool
 
-    from completion.model import read_checkpoint
-
-    threshold = float(read_checkpoint(weights).get("threshold", 0.5))
-    jobs = [(part, c, i, clean, threshold) for part in PARTS for c in conditions
+    jobs = [(part, c, i, clean) for part in PARTS for c in conditions
             for i in range(count)]
     with Pool(workers, initializer=_load, initargs=(weights,)) as pool:
         done = pool.map(_one, jobs, chunksize=1)
