@@ -238,11 +238,11 @@ def stored_support_plane(data: bytes) -> np.ndarray | None:
 
 
 def _unit_plane(plane) -> np.ndarray:
-    p = np.asarray(plane, dtype=np.float64).reshape(-1)
-    if p.shape != (4,) or not np.isfinite(p).all() or np.linalg.norm(p[:3]) < 1e-9:
-        raise ValueError(f"a support plane is four finite numbers [nx, ny, nz, d] with a "
-                         f"non-zero normal, got {np.asarray(plane).tolist()}")
-    return p / np.linalg.norm(p[:3])
+    """[nx, ny, nz, d] with |n| = 1, checked as everywhere else
+    (:class:`grasp_client.wire.SupportPlane`)."""
+    from grasp_client.wire import SupportPlane
+
+    return SupportPlane.from_values(np.asarray(plane, dtype=np.float64).reshape(-1)).as_array()
 
 
 def _logit(p: float) -> float:

@@ -1,6 +1,7 @@
 """The table an object rests on, and the hand against it.
 
-:class:`SupportPlane` is the surface (n·x + d = 0, n up, the object on its upper side): given on
+:class:`SupportPlane` (defined with the wire types in :mod:`grasp_client.wire`, where it is parsed
+and checked) is the surface (n·x + d = 0, n up, the object on its upper side): given on
 ``POST /views`` or ``GET /grasp``, it cuts the completion (:mod:`completion.stream`) and is an
 obstacle to the hand as in GraspIt! (an fcl halfspace in :class:`grasp.sim.CollisionScene`; the
 approach and every finger stop at it, :mod:`grasp.autograsp`). The functions below place the
@@ -11,70 +12,19 @@ above the plane: the planner drops any grasp that crosses it (:func:`crosses`).
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass
 from typing import Protocol
 
 import numpy as np
 
 from completion.grid import transform_points
+from grasp_client.wire import SupportPlane
 from hands.barrett import HandKinematics
+
+__all__ = ["TABLE_TOL_M", "SupportPlane", "crosses", "hand_clearance", "hand_points",
+           "hand_primitives"]
 
 #: A grasp whose hand reaches further below the table is dropped (only rounding can put it there).
 TABLE_TOL_M = 1e-6
-
-@dataclass(frozen=True)
-class SupportPlane:
-    """The surface the object rests on: points x with n·x + d = 0, n (unit) pointing up."""
-
-    normal: np.ndarray
-    offset: float
-
-    def __post_init__(self) -> None:
-        n = np.asarray(self.normal, dtype=np.float64).reshape(-1)
-        if n.shape != (3,) or not np.isfinite(n).all():
-            raise ValueError(f"a support plane's normal must be 3 finite numbers, got {n}")
-        if not np.isfinite(self.offset):
-            raise ValueError(f"a support plane's offset d must be finite, got {self.offset}")
-        norm = float(np.linalg.norm(n))
-        if not 1e-9 <= norm < np.inf:
-            raise ValueError(f"the support plane's normal must have a length of at least 1e-9 "
-                             f"(and not be zero), got {n.tolist()}")
-        object.__setattr__(self, "normal", n / norm)
-        object.__setattr__(self, "offset", float(self.offset) / norm)
-
-    @classmethod
-    def parse(cls, text: str) -> SupportPlane:
-        """From "nx,ny,nz,d" (the query and CLI form)."""
-        try:
-            values = [float(v) for v in text.split(",")]
-        except ValueError:
-            values = []
-        if len(values) != 4:
-            raise ValueError(f"a support plane is four numbers nx,ny,nz,d; got {text!r}")
-        return cls(np.array(values[:3]), values[3])
-
-    def height(self, points: np.ndarray) -> np.ndarray:
-        """Signed distance of (n, 3) points above the plane (metres)."""
-        return np.asarray(points, dtype=np.float64) @ self.normal + self.offset
-
-    def transformed(self, pose: np.ndarray) -> SupportPlane:
-        """The same plane in the frame whose pose (frame→here) is ``pose``."""
-        pose = np.asarray(pose, dtype=np.float64)
-        normal = pose[:3, :3].T @ self.normal
-        return SupportPlane(normal, self.offset + float(self.normal @ pose[:3, 3]))
-
-    def lowest(self, kind: str, size: Sequence[float], pose: np.ndarray) -> np.ndarray:
-        """Height (m) above the plane of the lowest point of a box (full extents ``size``) or a
-        cylinder ((radius, length) along its z) at (..., 4, 4) ``pose``: (...), negative below."""
-        pose = np.asarray(pose, dtype=np.float64)
-        down = np.einsum("...ji,j->...i", pose[..., :3, :3], self.normal)  # primitive's frame
-        centre = self.height(pose[..., :3, 3])
-        if kind == "box":
-            return centre - 0.5 * np.abs(down) @ np.asarray(size, dtype=np.float64)
-        radius, length = size
-        cos = np.abs(down[..., 2])
-        return centre - 0.5 * length * cos - radius * np.sqrt(np.clip(1.0 - cos * cos, 0.0, 1.0))
-
 
 _KINEMATICS = HandKinematics()
 

@@ -6,7 +6,7 @@ sessions in ``./grasp_store.sqlite``; every setting is a ``GRASP_*`` environment
 
     import httpx
     from completion.scenes import make_sequence
-    from service.client import scene_views
+    from service.load import scene_views
 
     views = scene_views(make_sequence("camera_pan", "test", 0, keep_depth=True))
     sid = httpx.post("http://127.0.0.1:8000/views", json=views[0]).json()["session_id"]
@@ -18,6 +18,8 @@ Modules: ``app`` (factory, lifespan, errors) · ``routes`` · ``schemas`` (reque
 bodies) · ``settings`` · ``deps`` (route dependencies) · ``inputs`` (decoding and checking views) ·
 ``pipeline`` (stream step, completion, mesh) · ``planning`` (grasp planning in worker processes) ·
 ``store`` (the session store interface) · ``sessions`` (SQLite store) · ``redis_store`` (Redis
-store, for replicas) · ``inspector`` (the 3-D page) · ``grasp_client`` (the Python client a robot
-program uses) · ``client`` (encoding views) · ``load`` (load generator).
+store, for replicas) · ``inspector`` (the 3-D page) · ``load`` (load generator, and
+``scene_views``: simulated scenes as request bodies). The Python client a robot program uses, and
+the wire types the service shares with it, are the ``grasp_client`` package
+(``clients/python/``).
 """

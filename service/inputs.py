@@ -15,13 +15,12 @@ from dataclasses import dataclass
 import numpy as np
 
 from completion.grid import GRID_SIZE, Intrinsics, VoxelGrid, depth_to_points, indices_to_points
+
+# MAX_COORDINATE_M: the largest |coordinate| (metres) accepted in points, depth and transforms:
+# far beyond any depth camera, small enough that fitting a grid cannot overflow
+from grasp_client.wire import MAX_COORDINATE_M, object_pixels
 from service.schemas import DepthIn, GridIn, ViewIn
 
-#: Largest |coordinate| (metres) accepted in points, depth and transforms: far beyond any depth
-#: camera, small enough that fitting a grid cannot overflow.
-MAX_COORDINATE_M = 1000.0
-#: Tolerance of the rigidity check on camera poses (orthonormal rotation).
-RIGID_TOL = 1e-3
 #: Voxel pitch (metres) a client-made grid may have: 0.1 mm to 10 m.
 MIN_PITCH_M, MAX_PITCH_M = 1e-4, 10.0
 #: Fields of view (degrees) a depth camera has: focal lengths that give one outside are not in
@@ -70,18 +69,14 @@ def decode_view(
     object's points beyond ``max_point_distance_m``), intrinsics that are not in pixels or not of
     this image.
     """
-    pose = None if view.camera_pose is None else _camera_pose(view.camera_pose)
+    pose = view.camera_pose  # checked rigid by its type (grasp_client.wire.rigid_pose)
     plane = None
     if view.support_plane is not None:
         if pose is None:
             raise InputError(("body", "support_plane"),
                              "support_plane is in the world frame: it needs this view's "
                              "camera_pose")
-        plane = np.asarray(view.support_plane, dtype=np.float64)
-        if np.linalg.norm(plane[:3]) < 1e-9:
-            raise InputError(("body", "support_plane"),
-                             "support_plane is [nx, ny, nz, d] with a non-zero normal n "
-                             f"(pointing up), got {view.support_plane}")
+        plane = view.support_plane.as_array()
     posed = {"camera_to_world": pose, "support_plane": plane}
     if view.points is not None:
         if len(view.points) > max_points:
@@ -302,19 +297,11 @@ def _mask(text: str, shape: tuple[int, int], label: int | None = None) -> np.nda
         raise InputError(
             loc, f"mask is {image.size[0]}×{image.size[1]} but the depth image is {w}×{h}"
         )
-    values = _pixels(image, loc)
-    if label is not None:
-        return values == label
-    mask = values != 0
-    if mask.any():  # every object pixel must hold the same 1 or 255 (no copy of the image)
-        low, high = int(values[mask].min()), int(values.max())
-        if low != high or high not in (1, 255):
-            present = np.unique(values)
-            shown = ", ".join(str(v) for v in present[:8]) + (", …" if len(present) > 8 else "")
-            raise InputError(loc, f"the mask (an 8-bit PNG) holds {len(present)} distinct values "
-                             f"({shown}); a mask is 0/1 or 0/255 with 0 = background, or a label "
-                             "image with object_label, the value of the object's pixels")
-    return mask
+    try:
+        return object_pixels(_pixels(image, loc), label)
+    except ValueError as exc:
+        message = str(exc).replace("the mask (uint8)", "the mask (an 8-bit PNG)")
+        raise InputError(loc, message) from None
 
 
 def _matrix(rows: list[list[float]], loc: tuple[str, ...], what: str) -> np.ndarray:
@@ -323,19 +310,6 @@ def _matrix(rows: list[list[float]], loc: tuple[str, ...], what: str) -> np.ndar
         raise InputError(loc, f"{what} entries must lie within ±{MAX_COORDINATE_M:g}")
     if not np.allclose(m[3], [0.0, 0.0, 0.0, 1.0]):
         raise InputError(loc, f"{what} must have the last row [0, 0, 0, 1], got {m[3].tolist()}")
-    return m
-
-
-def _camera_pose(rows: list[list[float]]) -> np.ndarray:
-    loc = ("body", "camera_pose")
-    m = _matrix(rows, loc, "camera_pose")
-    r = m[:3, :3]
-    if not np.allclose(r @ r.T, np.eye(3), atol=RIGID_TOL) or np.linalg.det(r) < 0:
-        raise InputError(
-            loc,
-            "camera_pose must be a rigid camera→world transform "
-            "(orthonormal rotation with determinant +1, metres)",
-        )
     return m
 
 

@@ -23,6 +23,7 @@ from fastapi import APIRouter, Request, Response
 from fastapi.responses import FileResponse
 from fastapi.staticfiles import StaticFiles
 
+from grasp_client.wire import SupportPlane
 from service.deps import ServicesDep
 from service.routes import (
     NCandidates,
@@ -104,7 +105,8 @@ async def get_scene(
 
 
 def hand_mesh(grasp) -> trimesh.Trimesh:
-    """One grasp's hand (``GraspOut``) as a single mesh of its placed primitives."""
+    """One grasp's hand (a :class:`grasp_client.wire.Grasp`) as one mesh of its placed
+    primitives."""
     parts = []
     for prim in grasp.hand:
         pose = np.asarray(prim.pose, dtype=np.float64)
@@ -116,10 +118,10 @@ def hand_mesh(grasp) -> trimesh.Trimesh:
     return trimesh.util.concatenate(parts)
 
 
-def plane_mesh(plane: list[float], centre: np.ndarray, side: float) -> trimesh.Trimesh:
-    """A thin square of the plane [nx, ny, nz, d] around the point nearest ``centre``."""
-    normal, offset = np.asarray(plane[:3], dtype=np.float64), float(plane[3])
-    point = centre - (normal @ centre + offset) * normal
+def plane_mesh(plane: SupportPlane, centre: np.ndarray, side: float) -> trimesh.Trimesh:
+    """A thin square of the plane around the point nearest ``centre``."""
+    normal = plane.normal
+    point = centre - plane.height(centre) * normal
     pose = trimesh.geometry.align_vectors([0.0, 0.0, 1.0], normal)
     pose[:3, 3] = point
     return trimesh.creation.box(extents=[side, side, 1e-3], transform=pose)

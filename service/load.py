@@ -91,13 +91,37 @@ def check_loopback(url: str) -> str:
     return url.rstrip("/")
 
 
+def scene_views(sequence, *, with_pose: bool = True) -> list[dict]:
+    """``POST /views`` bodies (without session_id) for a simulated sequence kept with depth.
+
+    ``sequence``: a :class:`completion.scenes.Sequence` made with ``keep_depth=True``; each view is
+    a 16-bit millimetre depth PNG with its object mask and intrinsics, and (with_pose) its camera
+    pose, encoded as the client encodes them (:mod:`grasp_client.wire`).
+    """
+    from grasp_client.wire import depth_png16_mm, intrinsics_field, mask_png
+
+    if sequence.depth is None or sequence.mask is None:
+        raise ValueError("the sequence has no depth images: make it with keep_depth=True")
+    intrinsics = intrinsics_field(sequence.meta["intrinsics"])
+    bodies = []
+    for t in range(len(sequence.depth)):
+        body = {
+            "depth": depth_png16_mm(sequence.depth[t]),
+            "intrinsics": intrinsics,
+            "mask": mask_png(sequence.mask[t] >= 0),
+        }
+        if with_pose:
+            body["camera_pose"] = sequence.camera_to_world[t].tolist()
+        bodies.append(body)
+    return bodies
+
+
 def make_bodies(
     n_scenes: int, views: int, seed: int, condition: str = "camera_pan"
 ) -> list[list[dict]]:
     """``n_scenes`` simulated scenes of ``condition`` (test split) as lists of view bodies; a
     tabletop scene's first view carries its table as the session's support plane."""
     from completion.scenes import make_sequence
-    from service.client import scene_views
 
     scenes = []
     for i in range(n_scenes):

@@ -20,20 +20,17 @@ from completion.mesh import MeshFormat, export_mesh
 from completion.stream import stored_support_plane
 from grasp.autograsp import pregrasp_pose
 from grasp.planner import palm_touches, too_large
-from grasp.table import SupportPlane, hand_primitives
-from hands.barrett import JOINT_NAMES
+from grasp.table import hand_primitives
+from grasp_client.wire import JOINT_NAMES, Contact, Grasp, Primitive, SupportPlane
 from service.deps import Services, ServicesDep, require_token
 from service.inputs import InputError
 from service.parsing import ParsedView
 from service.pipeline import Snapshot
 from service.schemas import (
-    ContactOut,
     ErrorOut,
-    GraspOut,
     GraspsOut,
     HealthOut,
     OccupancyOut,
-    PrimitiveOut,
     SessionOut,
     ViewOut,
 )
@@ -182,7 +179,7 @@ async def plan_session(
             raise InputError(("query", "support_plane"), str(exc)) from None
         async with services.exclusive(session_id):  # the session keeps it from now on
             await services.infer(services.pipeline.set_support_plane, session_id,
-                                 np.array([*plane.normal, plane.offset]))
+                                 plane.as_array())
     snapshot, mesh, timing = await services.infer(services.pipeline.grasp_mesh, session_id)
     plane = None
     if snapshot.support_plane is not None:  # into the latest camera frame
@@ -220,7 +217,7 @@ async def get_session(session_id: PathId, services: ServicesDep) -> SessionOut:
         created=datetime.fromtimestamp(record.created, UTC),
         updated=datetime.fromtimestamp(record.updated, UTC),
         expires=datetime.fromtimestamp(record.updated + ttl, UTC),
-        support_plane=None if plane is None else plane.tolist(),
+        support_plane=None if plane is None else SupportPlane(plane[:3], float(plane[3])),
     )
 
 
@@ -293,23 +290,23 @@ def _grasps_out(
         views=snapshot.record.views,
         grasps=[_grasp_out(r, camera) for r in held],
         reason=None if held else ("; ".join(reasons) or "no grasp candidate"),
-        camera_pose=None if camera is None else np.asarray(camera, dtype=float).tolist(),
-        support_plane=None if plane is None else [*plane.normal.tolist(), plane.offset],
+        camera_pose=camera,
+        support_plane=plane,
         timing_ms={k: round(v, 3) for k, v in timing_ms.items()},
     )
 
 
-def _grasp_out(result, camera_to_world: np.ndarray | None) -> GraspOut:
+def _grasp_out(result, camera_to_world: np.ndarray | None) -> Grasp:
     palm = np.asarray(result.palm_pose, dtype=np.float64)
     before = pregrasp_pose(palm)
     world = None if camera_to_world is None else np.asarray(camera_to_world, dtype=np.float64)
-    return GraspOut(
-        palm_pose=palm.tolist(),
-        palm_pose_world=None if world is None else (world @ palm).tolist(),
-        pregrasp_pose=before.tolist(),
-        pregrasp_pose_world=None if world is None else (world @ before).tolist(),
+    return Grasp(
+        palm_pose=palm,
+        palm_pose_world=None if world is None else world @ palm,
+        pregrasp_pose=before,
+        pregrasp_pose_world=None if world is None else world @ before,
         joints_deg=dict(zip(JOINT_NAMES, map(float, result.joints_deg), strict=True)),
-        dofs_deg=[float(d) for d in result.dofs_deg],
+        dofs_deg=np.asarray(result.dofs_deg, dtype=np.float64),
         epsilon=float(result.epsilon),
         volume=float(result.volume),
         force_epsilon=float(result.force_epsilon),
@@ -317,16 +314,8 @@ def _grasp_out(result, camera_to_world: np.ndarray | None) -> GraspOut:
         approach_stop=result.approach_stop,
         hold_probability=None if math.isnan(result.hold_probability)
         else float(result.hold_probability),
-        contacts=[
-            ContactOut(
-                link=c.link,
-                point=np.asarray(c.point, dtype=float).tolist(),
-                normal=np.asarray(c.normal, dtype=float).tolist(),
-            )
-            for c in result.contacts
-        ],
-        hand=[
-            PrimitiveOut(link=link, kind=kind, size=list(size), pose=pose.tolist())
-            for link, kind, size, pose in hand_primitives(result)
-        ],
+        contacts=[Contact(c.link, np.asarray(c.point, dtype=np.float64),
+                          np.asarray(c.normal, dtype=np.float64)) for c in result.contacts],
+        hand=[Primitive(link, kind, [float(v) for v in size], pose)
+              for link, kind, size, pose in hand_primitives(result)],
     )

@@ -1,5 +1,9 @@
 """Request and response bodies of the HTTP API (JSON; arrays as nested lists, binary as base64).
 
+What the robot side shares with the service (a grasp, its contacts and hand, poses, the support
+plane) is defined once in :mod:`grasp_client.wire` and used here as it is, so the client and this
+schema cannot drift apart.
+
 Frames (docs/design.md §3): points, poses and grids are in the camera frame of the view they
 came with (OpenCV optical: x right, y down, z forward, metres); ``camera_pose`` is camera→world.
 """
@@ -10,6 +14,8 @@ from datetime import datetime
 from typing import Annotated, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, model_validator
+
+from grasp_client.wire import Grasp, Pose, RigidPose, SupportPlane
 
 FiniteFloat = Annotated[float, Field(allow_inf_nan=False)]
 Vector3 = Annotated[list[FiniteFloat], Field(min_length=3, max_length=3)]
@@ -77,13 +83,13 @@ class ViewIn(_Strict):
         "object's pixels (the others are background)"
     )
     grid: GridIn | None = None
-    camera_pose: Matrix4 | None = Field(
+    camera_pose: RigidPose | None = Field(
         None,
         description="camera→world, rigid (an orthonormal rotation with determinant +1, last row "
         "[0, 0, 0, 1], metres); while it stays the same from view to view, the grid "
         "is fitted to every point seen from that pose (a fixed camera watching objects move)",
     )
-    support_plane: Row4 | None = Field(
+    support_plane: SupportPlane | None = Field(
         None,
         description="the table the object rests on, [nx, ny, nz, d] in the world frame (n·x + d "
         "= 0, n pointing up, metres; needs camera_pose). The session keeps it: the completion "
@@ -117,71 +123,18 @@ class ViewOut(BaseModel):
 # ------------------------------------------------------------------------------- GET /grasp
 
 
-class ContactOut(BaseModel):
-    link: str
-    point: list[float] = Field(description="camera frame, metres")
-    normal: list[float] = Field(description="unit, camera frame")
-
-
-class PrimitiveOut(BaseModel):
-    link: str = Field(description="palm, f1_knuckle, f1_prox, f1_dist, …")
-    kind: Literal["box", "cylinder"]
-    size: list[float] = Field(description="box: full extents; cylinder: radius, length (z)")
-    pose: list[list[float]] = Field(description="4×4 primitive→camera (latest view)")
-
-
-class GraspOut(BaseModel):
-    palm_pose: list[list[float]] = Field(description="4×4 palm→camera (latest view)")
-    palm_pose_world: list[list[float]] | None = Field(
-        description="4×4 palm→world, when the latest view came with a camera_pose"
-    )
-    pregrasp_pose: list[list[float]] = Field(
-        description="4×4 palm→camera the robot moves to first: the palm backed off 0.2 m along "
-        "its approach axis (−z), hand open at the grasp's spread; then approach and close"
-    )
-    pregrasp_pose_world: list[list[float]] | None = Field(
-        description="the pre-grasp pose palm→world, when the latest view came with a camera_pose"
-    )
-    joints_deg: dict[str, float] = Field(
-        description="the 8 joints by name (f1_spread, f1_prox, f1_dist, f2_spread, f2_prox, "
-        "f2_dist, f3_prox, f3_dist), degrees"
-    )
-    dofs_deg: list[float] = Field(description="spread, f1, f2, f3 DOFs, degrees")
-    epsilon: float = Field(description="Ferrari–Canny epsilon of the L1 grasp wrench space")
-    volume: float
-    force_epsilon: float = Field(
-        description="epsilon of pure forces through the centre of mass (weight, inertia): "
-        "the ranking's measure after force closure and palm contact"
-    )
-    palm_contact: bool = Field(description="the palm touches the object (a power grasp)")
-    approach_stop: str = Field(
-        description="how to execute it: move from the pre-grasp pose toward palm_pose, stopping "
-        "at the first touch (object or table); 'contact': the plan's approach ended touching "
-        "the object, so go on past palm_pose (up to 5 cm) until it touches; 'limit': a "
-        "fingertip grasp, stop at palm_pose untouched; then close"
-    )
-    hold_probability: float | None = Field(
-        description="with a support plane, the ranking's estimate that the grasp holds when the "
-        "object is lifted (a model learned from lift tests); null without one"
-    )
-    contacts: list[ContactOut]
-    hand: list[PrimitiveOut] = Field(
-        description="the hand at this grasp as collision primitives placed by its kinematics"
-    )
-
-
 class GraspsOut(BaseModel):
     session_id: str
     views: int
-    grasps: list[GraspOut] = Field(description="best first; empty when no candidate held")
+    grasps: list[Grasp] = Field(description="best first; empty when no candidate held")
     reason: str | None = Field(None, description="why no grasp was found, when grasps is empty")
-    camera_pose: list[list[float]] | None = Field(
+    camera_pose: Pose | None = Field(
         None, description="4×4 camera→world of the latest view, when it came with one"
     )
     cached: bool = Field(
         False, description="the plan of an earlier request on the same mesh with the same options"
     )
-    support_plane: list[float] | None = Field(
+    support_plane: SupportPlane | None = Field(
         None,
         description="the support plane the grasps respect, [nx, ny, nz, d] in the latest "
         "camera frame (n·x + d = 0, n up), when one was given",
@@ -209,7 +162,7 @@ class SessionOut(BaseModel):
     created: datetime
     updated: datetime
     expires: datetime = Field(description="when the session is deleted unless a view arrives")
-    support_plane: list[float] | None = Field(
+    support_plane: SupportPlane | None = Field(
         None, description="the support plane the session keeps, [nx, ny, nz, d] in the world "
         "frame (|n| = 1), once POST /views or GET /grasp gave one"
     )
@@ -225,7 +178,7 @@ class OccupancyOut(BaseModel):
     data: str
     threshold: float
     occupied_voxels: int
-    grid_to_camera: list[list[float]] = Field(description="4×4, latest view's camera frame")
+    grid_to_camera: Pose = Field(description="4×4, latest view's camera frame")
 
 
 class HealthOut(BaseModel):

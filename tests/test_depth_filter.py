@@ -160,7 +160,7 @@ def test_service_and_evaluation_make_the_same_grid_from_one_depth_image(client, 
     from service_helpers import new_session, reference
 
     from completion.scenes import make_sequence
-    from service.client import depth_f32_m, intrinsics_field, mask_png
+    from grasp_client.wire import depth_f32_m, intrinsics_field, mask_png
 
     seq = make_sequence("tabletop", "test", 1, 0, views=3, keep_depth=True)
     assert seq.meta["noise"]

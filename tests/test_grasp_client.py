@@ -1,5 +1,6 @@
-"""service.grasp_client: the same grasps as raw HTTP against a real ``python -m service``, inputs
-checked before anything is sent, errors as exceptions with the service's message, retries."""
+"""grasp_client (clients/python): the same grasps as raw HTTP against a real ``python -m
+service``, inputs checked before anything is sent, errors as exceptions with the service's
+message, retries."""
 
 from __future__ import annotations
 
@@ -11,16 +12,16 @@ import pytest
 from service_helpers import Server, free_port, post_views
 
 from completion.grid import VoxelGrid
-from hands.barrett import JOINT_NAMES
-from service import grasp_client
-from service.client import scene_views
-from service.grasp_client import (
+from grasp_client import (
     Grasp,
     GraspClient,
     InvalidRequest,
     NothingSeen,
     Unauthorized,
 )
+from grasp_client import client as grasp_client
+from hands.barrett import JOINT_NAMES
+from service.load import scene_views
 
 
 @pytest.fixture(scope="module")
@@ -182,7 +183,9 @@ def test_retries_are_bounded(monkeypatch):
     (lambda s: s.add_view(np.ones((4, 5), np.int32), (1, 1, 2, 2)), "float metres or uint16"),
     (lambda s: s.add_view(np.ones(5, np.float32), (1, 1, 2, 2)), r"\(H, W\) image"),
     (lambda s: s.add_view(np.ones((4, 5), np.float32), (1, 1, 2, 2), camera_pose=np.eye(3)),
-     "camera_pose must be a finite 4×4"),
+     r"camera_pose must have shape \(4, 4\)"),
+        (lambda s: s.add_view(np.ones((4, 5), np.float32), (1, 1, 2, 2),
+                              camera_pose=np.diag([2.0, 1, 1, 1])), "must be a rigid camera→world"),
     (lambda s: s.add_points(np.zeros((3, 2))), r"finite \(N, 3\)"),
     (lambda s: s.grasps(), "no view yet"),
 ])

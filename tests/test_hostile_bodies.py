@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 from service_helpers import Server, points_view
 
-from service.client import b64, png_bytes
+from grasp_client.wire import b64, png_bytes
 
 
 @pytest.fixture(scope="module")

@@ -18,7 +18,7 @@ from PIL import Image
 from service_helpers import Server
 
 from completion.scenes import make_sequence
-from service.client import scene_views
+from service.load import scene_views
 
 CHROMIUM = "/usr/bin/chromium"
 GRASP_QUERY = {"top_k": 3, "n_candidates": 16}

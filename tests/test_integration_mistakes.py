@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 from service_helpers import Server
 
-from service.client import b64, depth_f32_m, png_bytes
-from service.grasp_client import GraspClient, InvalidRequest, NothingSeen
+from grasp_client import GraspClient, InvalidRequest, NothingSeen
+from grasp_client.wire import b64, depth_f32_m, png_bytes
 
 
 @pytest.fixture(scope="module")

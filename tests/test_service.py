@@ -28,8 +28,9 @@ from service_helpers import (
 from completion.depth import DEPTH_FILTER
 from completion.grid import VoxelGrid, pitch_of, transform_points
 from completion.mesh import load_mesh_bytes
+from grasp_client.wire import depth_f32_m, grid_field, intrinsics_field
 from service.app import create_app
-from service.client import depth_f32_m, grid_field, intrinsics_field, scene_views
+from service.load import scene_views
 
 # --------------------------------------------------------------------------------- routes
 

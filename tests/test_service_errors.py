@@ -24,8 +24,9 @@ from service_helpers import (
 
 from completion.grid import VoxelGrid
 from completion.model import build_model, save_checkpoint
+from grasp_client.wire import b64, depth_f32_m, grid_field, mask_png, png_bytes
 from service.app import create_app
-from service.client import b64, depth_f32_m, grid_field, mask_png, png_bytes, scene_views
+from service.load import scene_views
 
 # --------------------------------------------------------------------------------- bad input
 
@@ -122,7 +123,7 @@ BAD_VIEWS = [
     ("pose last row", lambda s: points_view() | {"camera_pose": np.ones((4, 4)).tolist()},
      ["body", "camera_pose"], "last row [0, 0, 0, 1]"),
     ("pose 3×4", lambda s: points_view() | {"camera_pose": np.eye(4)[:3].tolist()},
-     ["body", "camera_pose"], "at least 4 items"),
+     ["body", "camera_pose"], "must have shape (4, 4)"),
     ("unknown field", lambda s: points_view() | {"camera_to_world": 1}, ["body", "camera_to_world"],
      "Extra inputs are not permitted"),
     ("not json", lambda s: '{"points": [[0, 0, 1]', None, "JSON decode error"),

@@ -15,7 +15,7 @@ from service_helpers import REPO
 
 from completion.scenes import make_sequence
 from service.app import create_app
-from service.client import scene_views
+from service.load import scene_views
 from service.settings import Settings
 
 # --------------------------------------------------------------------------------- golden

@@ -24,7 +24,7 @@ from service_helpers import (
 
 from completion.model import load_model
 from completion.stream import CompletionStream
-from service.client import scene_views
+from service.load import scene_views
 
 
 @pytest.fixture(scope="module")

@@ -19,7 +19,7 @@ from service_helpers import Server, post_concurrently, post_views, reference, sa
 
 from completion.model import load_model
 from completion.stream import CompletionStream
-from service.client import scene_views
+from service.load import scene_views
 from service.redis_store import RedisSessionStore
 from service.sessions import SessionStore
 from service.settings import Settings

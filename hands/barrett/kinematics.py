@@ -26,22 +26,13 @@ from typing import Literal
 
 import numpy as np
 
+# The 8 joints in API order and the 4 DOFs (spread, fingers 1 and 2 together, and one closing DOF
+# per finger) are what the wire carries: defined once, with the client (docs/design.md §7).
+from grasp_client.wire import DOF_NAMES as DOF_NAMES  # re-exported
+from grasp_client.wire import JOINT_NAMES
 from hands.barrett.params import BH8_282, BarrettParams
 
 FINGERS: tuple[str, ...] = ("f1", "f2", "f3")
-#: The 8 joints in API order (docs/design.md §7).
-JOINT_NAMES: tuple[str, ...] = (
-    "f1_spread",
-    "f1_prox",
-    "f1_dist",
-    "f2_spread",
-    "f2_prox",
-    "f2_dist",
-    "f3_prox",
-    "f3_dist",
-)
-#: The 4 DOFs: spread (fingers 1 and 2 together) and one closing DOF per finger.
-DOF_NAMES: tuple[str, ...] = ("spread", "f1", "f2", "f3")
 LINK_NAMES: tuple[str, ...] = (
     "palm",
     "f1_knuckle",

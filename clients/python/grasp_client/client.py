@@ -2,7 +2,7 @@
 
 ::
 
-    from service.grasp_client import GraspClient
+    from grasp_client import GraspClient
 
     with GraspClient("http://127.0.0.1:8000") as client, client.session() as session:
         session.add_view(depth, K, mask=mask, camera_pose=camera_to_world)  # numpy arrays
@@ -25,14 +25,21 @@ import io
 import math
 import time
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
 from typing import Any
 
 import httpx
 import numpy as np
 
-from hands.barrett import JOINT_NAMES
-from service.client import b64, depth_f32_m, grid_field, mask_png, png_bytes
+from grasp_client.wire import (
+    Grasp,
+    SupportPlane,
+    depth_f32_m,
+    depth_png16_raw,
+    grid_field,
+    mask_png,
+    object_pixels,
+    rigid_pose,
+)
 
 #: ROS ``sensor_msgs/Image`` encodings of depth, and what they hold.
 DEPTH_ENCODINGS = {"16UC1": "mm", "mono16": "mm", "32FC1": "m", "mm": "mm", "m": "m"}
@@ -89,55 +96,6 @@ def _message(detail: Any) -> str:
             f"{'.'.join(str(p) for p in d.get('loc', ()))}: {d.get('msg', d)}"
             if isinstance(d, dict) else str(d) for d in detail)
     return str(detail)
-
-
-@dataclass(frozen=True)
-class Contact:
-    link: str
-    point: np.ndarray  # (3,) camera frame, metres
-    normal: np.ndarray  # (3,) unit, camera frame
-
-
-@dataclass(frozen=True)
-class Grasp:
-    """One planned grasp. Poses are 4×4 float64; ``joints`` by name in degrees, ``joint_array``
-    the same 8 in the documented order (:data:`JOINT_NAMES`)."""
-
-    palm_pose: np.ndarray
-    palm_pose_world: np.ndarray | None
-    pregrasp_pose: np.ndarray
-    pregrasp_pose_world: np.ndarray | None
-    joints: dict[str, float]
-    dofs_deg: np.ndarray  # spread, f1, f2, f3
-    epsilon: float
-    force_epsilon: float
-    volume: float
-    palm_contact: bool
-    contacts: tuple[Contact, ...]
-    approach_stop: str = "contact"  # "limit": stop at palm_pose; "contact": on until it touches
-    hold_probability: float | None = None  # on a table: the ranking's estimate that it holds
-
-    @property
-    def joint_array(self) -> np.ndarray:
-        return np.array([self.joints[name] for name in JOINT_NAMES], dtype=np.float64)
-
-    @classmethod
-    def from_json(cls, g: Mapping[str, Any]) -> Grasp:
-        def pose(key: str) -> np.ndarray | None:
-            return None if g.get(key) is None else np.asarray(g[key], dtype=np.float64)
-
-        return cls(
-            palm_pose=pose("palm_pose"), palm_pose_world=pose("palm_pose_world"),
-            pregrasp_pose=pose("pregrasp_pose"), pregrasp_pose_world=pose("pregrasp_pose_world"),
-            joints={name: float(g["joints_deg"][name]) for name in JOINT_NAMES},
-            dofs_deg=np.asarray(g["dofs_deg"], dtype=np.float64),
-            epsilon=float(g["epsilon"]), force_epsilon=float(g["force_epsilon"]),
-            volume=float(g["volume"]), palm_contact=bool(g["palm_contact"]),
-            contacts=tuple(Contact(c["link"], np.asarray(c["point"]), np.asarray(c["normal"]))
-                           for c in g["contacts"]),
-            approach_stop=str(g.get("approach_stop", "contact")),
-            hold_probability=g.get("hold_probability"),
-        )
 
 
 class GraspClient:
@@ -257,7 +215,8 @@ class Session:
         return self._post({"points": p.tolist()}, camera_pose)
 
     def add_grid(self, grid, *, camera_pose: np.ndarray | None = None) -> dict:
-        """Send a ready 40³ :class:`completion.grid.VoxelGrid` (occupancy and grid→camera)."""
+        """Send a ready 40³ grid: an object with ``pack()`` (the 8000 packed bytes) and
+        ``grid_to_camera``, such as the service's ``completion.grid.VoxelGrid``."""
         return self._post({"grid": grid_field(grid)}, camera_pose)
 
     def grasps(self, top_k: int = 1, *, n_candidates: int | None = None) -> list[Grasp]:
@@ -272,13 +231,17 @@ class Session:
         return [Grasp.from_json(g) for g in out["grasps"]]
 
     def mesh(self):
-        """The completion as a ``trimesh.Trimesh`` in the latest view's camera frame (metres)."""
+        """The completion as a ``trimesh.Trimesh`` in the latest view's camera frame (metres);
+        needs trimesh, which the client does not install (:meth:`mesh_ply` needs nothing)."""
         import trimesh
 
+        return trimesh.load(io.BytesIO(self.mesh_ply()), file_type="ply", force="mesh")
+
+    def mesh_ply(self) -> bytes:
+        """The completion as binary PLY bytes, the latest view's camera frame (metres)."""
         self._need_id()
-        data = self.client.request("GET", f"/sessions/{self.id}/mesh",
+        return self.client.request("GET", f"/sessions/{self.id}/mesh",
                                    params={"format": "ply"}).content
-        return trimesh.load(io.BytesIO(data), file_type="ply", force="mesh")
 
     def info(self) -> dict:
         """``GET /sessions/{id}``: views, whether the object was seen, expiry, the support
@@ -298,11 +261,10 @@ class Session:
 
     def _post(self, body: dict, camera_pose: np.ndarray | None) -> dict:
         if camera_pose is not None:
-            pose = np.asarray(camera_pose, dtype=np.float64)
-            if pose.shape != (4, 4) or not np.isfinite(pose).all():
-                raise _invalid("camera_pose",
-                               f"camera_pose must be a finite 4×4 array, got shape {pose.shape}")
-            body["camera_pose"] = pose.tolist()
+            try:
+                body["camera_pose"] = rigid_pose(camera_pose).tolist()
+            except ValueError as exc:
+                raise _invalid("camera_pose", str(exc)) from None
         if self.id is not None:
             body["session_id"] = self.id
         elif self.support_plane is not None:  # the session keeps it from its first view
@@ -338,34 +300,19 @@ def _depth_field(depth: np.ndarray, encoding: str | None) -> dict:
             raise _invalid("depth.encoding",
                            f"encoding {encoding!r} holds {DEPTH_ENCODINGS[encoding]} but the "
                              f"depth array is {d.dtype} ({unit})")
-    if unit == "mm":  # the camera's own millimetres, losslessly
-        h, w = d.shape
-        return {"encoding": "png16_mm", "width": w, "height": h, "data": b64(png_bytes(d))}
-    return depth_f32_m(d)
-
-
-#: The values a mask may hold without ``object_label`` (0 = background).
-MASK_VALUES = ({0, 1}, {0, 255})
+    return depth_png16_raw(d) if unit == "mm" else depth_f32_m(d)
 
 
 def _object_pixels(mask: Any, shape: tuple[int, ...], label: int | None) -> np.ndarray:
-    """(H, W) bool: the object's pixels of a boolean, 0/1 or 0/255 mask, or of a label image's
-    ``label``; anything else is refused with the dtype and the values it holds."""
+    """(H, W) bool: the object's pixels by the service's own rule (:func:`object_pixels`)."""
     m = np.asarray(mask)
     if m.shape != tuple(shape):
         raise _invalid("mask", f"mask must have the depth image's shape {tuple(shape)}, "
                        f"got {m.shape}")
-    if label is not None:
-        return m == label
-    if m.dtype == bool:
-        return m
-    values = np.unique(m)
-    if m.dtype.kind in "iuf" and any(set(values.tolist()) <= allowed for allowed in MASK_VALUES):
-        return m != 0
-    shown = ", ".join(f"{v:g}" for v in values[:8].tolist()) + (", …" if len(values) > 8 else "")
-    raise _invalid("mask", f"the mask ({m.dtype}) holds {len(values)} distinct values ({shown}); "
-                   "a mask is boolean, 0/1 or 0/255 with 0 = background, or a label image with "
-                   "object_label=<the object's value>")
+    try:
+        return object_pixels(m, label)
+    except ValueError as exc:
+        raise _invalid("mask", str(exc)) from None
 
 
 def _intrinsics(K: Any) -> dict:
@@ -396,12 +343,10 @@ def _intrinsics(K: Any) -> dict:
 def _plane(plane: Sequence[float] | None) -> list[float] | None:
     if plane is None:
         return None
-    p = np.asarray(plane, dtype=np.float64)
-    if p.shape != (4,) or not np.isfinite(p).all() or not np.linalg.norm(p[:3]) > 0:
-        raise _invalid("support_plane",
-                       "support_plane must be four finite numbers (nx, ny, nz, d) with a "
-                         f"non-zero normal, got {plane!r}")
-    return [float(v) for v in p]
+    try:
+        return SupportPlane.from_values(plane).as_array().tolist()
+    except ValueError as exc:
+        raise _invalid("support_plane", str(exc)) from None
 
 
 def _retry_after(response: httpx.Response) -> float | None:
