@@ -21,11 +21,12 @@ from __future__ import annotations
 
 import base64
 import math
+import re
 import struct
 import zlib
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
-from typing import Annotated, Any, Literal
+from typing import Annotated, Any, ClassVar, Literal
 
 import numpy as np
 
@@ -138,6 +139,13 @@ class SupportPlane:
     normal: np.ndarray
     offset: float
 
+    #: The text form "nx,ny,nz,d": four decimal numbers, finite as floats (at most 9 digits
+    #: before the point, exponents of at most two digits, so 1e999 does not match); the
+    #: lookahead asks for a non-zero digit in the normal.
+    PATTERN: ClassVar[re.Pattern] = re.compile(
+        r"^(?=[^,]*[1-9]|[^,]*,[^,]*[1-9]|[^,]*,[^,]*,[^,]*[1-9])"
+        + ",".join([r"[-+]?\d{1,9}(\.\d{1,20})?([eE][-+]?\d{1,2})?"] * 4) + "$")
+
     def __post_init__(self) -> None:
         n = np.asarray(self.normal, dtype=np.float64).reshape(-1)
         if n.shape != (3,) or not np.isfinite(n).all():
@@ -159,14 +167,13 @@ class SupportPlane:
 
     @classmethod
     def parse(cls, text: str) -> SupportPlane:
-        """From "nx,ny,nz,d" (the query and command-line form)."""
-        try:
-            values = [float(v) for v in text.split(",")]
-        except ValueError:
-            values = []
-        if len(values) != 4:
-            raise ValueError(f"a support plane is four numbers nx,ny,nz,d; got {text!r:.80}")
-        return cls.from_values(values)
+        """From "nx,ny,nz,d" (the query and command-line form, :attr:`PATTERN`)."""
+        if not cls.PATTERN.match(text):
+            raise ValueError(
+                "support_plane is four numbers nx,ny,nz,d without spaces (like 0,0,1,-0.25 or "
+                "1e-3; at most 9 digits before the point, exponents of at most two digits), the "
+                f"normal not zero; got {text[:80]!r}")
+        return cls.from_values([float(v) for v in text.split(",")])
 
     def as_array(self) -> np.ndarray:
         """[nx, ny, nz, d] with |n| = 1."""
