@@ -41,8 +41,12 @@ def main(argv: list[str] | None = None) -> None:
             "'Authorization: Bearer <token>'",
             file=sys.stderr,
         )
+    import uvicorn
+
+    from service.connections import check_uvicorn, serve
+
+    check_uvicorn(uvicorn.__version__)  # before the model loads
     from service.app import create_app
-    from service.connections import serve
 
     serve(create_app(settings), settings)
 

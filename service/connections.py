@@ -23,8 +23,9 @@ option, so :class:`GuardedH11Protocol` subclasses its h11 protocol (picked with
 Hand-written because neither uvicorn nor Starlette offers these; a reverse proxy in front does
 (nginx: ``client_header_timeout``, ``client_body_timeout``, ``limit_conn``, ``lingering_close``),
 but ``python -m service`` is also run on its own. It leans on uvicorn's H11Protocol internals
-(``conn``, ``flow``, ``_unset_keepalive_if_required``): uvicorn is pinned in pyproject.toml, and
-tests/test_connections.py fails on the plain protocol.
+(``conn``, ``flow``, ``_unset_keepalive_if_required``): :func:`serve` refuses to start on a
+uvicorn outside :data:`TESTED_UVICORN` (the minor releases tests/test_connections.py passed
+on), and pyproject.toml's range admits only those.
 
 A connection is in one phase at a time, read off h11's states after every event: ``head``
 (waiting for a request), ``body`` (reading one), ``app`` (the app has the request: no deadline,
@@ -76,10 +77,27 @@ class Limits:
         )
 
 
+#: The uvicorn minor releases this module's use of H11Protocol internals was tested with.
+TESTED_UVICORN = ("0.54",)
+
+
+def check_uvicorn(version: str) -> None:
+    """``SystemExit`` with what to do when ``version`` is not a tested uvicorn release."""
+    if ".".join(version.split(".")[:2]) not in TESTED_UVICORN:
+        raise SystemExit(
+            f"python -m service: uvicorn {version} is installed, but the connection guards "
+            f"(service/connections.py) use uvicorn's H11Protocol internals and were tested with "
+            f"uvicorn {', '.join(v + '.x' for v in TESTED_UVICORN)} only; install the locked "
+            "set (pip install -c requirements.lock -e .) or test that release and add it to "
+            "TESTED_UVICORN")
+
+
 def serve(app: Callable, settings: Settings) -> None:
-    """``uvicorn.run`` on ``settings.host:port``, each connection a :class:`GuardedH11Protocol`."""
+    """``uvicorn.run`` on ``settings.host:port``, each connection a :class:`GuardedH11Protocol`;
+    refuses an untested uvicorn (:func:`check_uvicorn`)."""
     import uvicorn
 
+    check_uvicorn(uvicorn.__version__)
     # uvicorn calls Config.http as a factory (config=, server_state=, app_state=, _loop=), so a
     # partial carries the limits and the count of connections per address that all share.
     protocol = partial(GuardedH11Protocol, limits=Limits.of(settings), per_client=Counter())

@@ -34,7 +34,8 @@ def test_the_readme_reads_in_five_minutes():
     for page in PAGES:
         if page.name == "results.md":
             continue  # written by python -m grasp.evaluate: its tables do not wrap
-        long = [i + 1 for i, line in enumerate(page.read_text().splitlines()) if len(line) > 120]
+        long = [i + 1 for i, line in enumerate(page.read_text().splitlines())
+                if len(line) > 120 and not line.startswith("python3.11 -m venv")]  # one command
         assert not long, f"{page.relative_to(ROOT)}: lines over 120 characters: {long}"
     assert len((ROOT / "completion" / "weights" / "README.md").read_text().splitlines()) <= 250
 
@@ -91,18 +92,19 @@ def test_ci_runs_the_readmes_test_command():
     readme = (ROOT / "README.md").read_text()
     command = re.findall(r"```bash\n(.*?)```", readme, re.S)[1].strip()  # the quick start's second
     assert command.endswith("pytest -q") and "\n" not in command
-    install_and_test = command.split("&& ", 2)[2].replace("pip install -e", "pip install -q -e")
+    install_and_test = command.split("&& ", 2)[2].replace("pip install -c", "pip install -q -c")
     assert install_and_test in (ROOT / ".ci" / "run").read_text()
 
 
 def test_the_readme_layout_names_every_module():
     readme = (ROOT / "README.md").read_text()
     layout = readme[readme.index("## Layout"):]
-    for package in ("completion", "grasp", "service", "hands"):
+    for package in ("completion", "grasp", "service", "hands", "clients/python/grasp_client"):
         for path in (ROOT / package).rglob("*.py"):
             if path.stem in ("__init__", "__main__"):
                 continue
-            named = path.name if path.parent.name in ("completion", "grasp", "service") \
+            named = path.name if path.parent.name in ("completion", "grasp", "service",
+                                                      "grasp_client") \
                 or path.parent.parent.name == "hands" else path.stem
             assert f"`{named}" in layout, f"README's layout does not name {path.relative_to(ROOT)}"
 
