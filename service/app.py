@@ -95,8 +95,9 @@ def _null(*names: str) -> dict:
 
 def _view_schema(view: dict, settings: Settings) -> dict:
     """ViewIn's own model validator, written as JSON Schema: exactly one of points, depth with
-    intrinsics (and an optional mask), or grid; absent and null are the same. Points: at most
-    ``max_points``, within ±MAX_COORDINATE_M, in front of the camera (z > 0)."""
+    intrinsics (and an optional mask), or grid; absent and null are the same; a support_plane
+    needs a camera_pose, an object_label a mask. Points: at most ``max_points``, within
+    ±MAX_COORDINATE_M, in front of the camera (z > 0)."""
     view["oneOf"] = [
         {"required": ["points"], "properties": {"points": {"type": "array"}}
          | _null("depth", "intrinsics", "mask", "grid")},
@@ -106,6 +107,11 @@ def _view_schema(view: dict, settings: Settings) -> dict:
         {"required": ["grid"], "properties": {"grid": {"type": "object"}}
          | _null("points", "depth", "intrinsics", "mask")},
     ]  # fmt: skip
+    view["allOf"] = [  # "if given (not null), then that one too"
+        {"if": {"required": [field], "properties": {field: {"not": {"type": "null"}}}},
+         "then": {"required": [needs], "properties": {needs: {"not": {"type": "null"}}}}}
+        for field, needs in (("support_plane", "camera_pose"), ("object_label", "mask"))
+    ]
     coordinate = {"type": "number", "minimum": -MAX_COORDINATE_M, "maximum": MAX_COORDINATE_M}
     point = {
         "type": "array",

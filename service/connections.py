@@ -36,6 +36,8 @@ from __future__ import annotations
 
 import asyncio
 import json
+import math
+import time
 from collections import Counter
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -53,6 +55,9 @@ from service.settings import Settings
 #: a client that sends its request before reading sees the 429 and not a reset.
 REFUSED_LINGER_S = 1.0
 
+#: Refused connections are logged once per client address and interval (seconds), with counts.
+REFUSED_LOG_INTERVAL_S = 10.0
+
 Phase = Literal["head", "body", "app", "linger"]
 _ANSWERED = (h11.DONE, h11.MUST_CLOSE, h11.CLOSED)  # h11 states of a server whose answer is out
 
@@ -65,6 +70,7 @@ class Limits:
     body_timeout_s: float
     max_per_client: int
     max_drain_bytes: int  # read and discarded after an early answer, at most
+    max_head_bytes: int  # the request line and headers together, at most
 
     @classmethod
     def of(cls, settings: Settings) -> Limits:
@@ -74,11 +80,36 @@ class Limits:
             body_timeout_s=settings.body_timeout_s,
             max_per_client=settings.max_connections_per_client,
             max_drain_bytes=2 * settings.max_body_bytes,
+            max_head_bytes=settings.max_head_bytes,
         )
 
 
 #: The uvicorn minor releases this module's use of H11Protocol internals was tested with.
 TESTED_UVICORN = ("0.54",)
+
+
+class RefusalLog:
+    """One log line per client address per ``interval_s`` for refused connections, however many
+    there were: the first refusal is logged at once, the rest of the interval is counted and
+    told on the next line ("… 5123 more since the last line")."""
+
+    def __init__(self, interval_s: float = REFUSED_LOG_INTERVAL_S,
+                 clock: Callable[[], float] = time.monotonic) -> None:
+        self.interval_s, self.clock = interval_s, clock
+        self.last: dict[str, float] = {}  # address → when its last line was written
+        self.unlogged: Counter[str] = Counter()
+
+    def refused(self, address: str, log: Callable[..., None], message: str, *args: object) -> None:
+        now = self.clock()
+        if now - self.last.get(address, -math.inf) < self.interval_s:
+            self.unlogged[address] += 1
+            return
+        more = self.unlogged.pop(address, 0)
+        self.last[address] = now
+        for stale in [a for a, t in self.last.items() if now - t > 6 * self.interval_s]:
+            del self.last[stale]  # addresses quiet for a while: forget them
+        suffix = f" ({more} more since the last line)" if more else ""
+        log(message + suffix, *args)
 
 
 def check_uvicorn(version: str) -> None:
@@ -100,8 +131,10 @@ def serve(app: Callable, settings: Settings) -> None:
     check_uvicorn(uvicorn.__version__)
     # uvicorn calls Config.http as a factory (config=, server_state=, app_state=, _loop=), so a
     # partial carries the limits and the count of connections per address that all share.
-    protocol = partial(GuardedH11Protocol, limits=Limits.of(settings), per_client=Counter())
-    uvicorn.run(app, host=settings.host, port=settings.port, log_level="info", http=protocol)
+    protocol = partial(GuardedH11Protocol, limits=Limits.of(settings), per_client=Counter(),
+                       refusals=RefusalLog())
+    uvicorn.run(app, host=settings.host, port=settings.port, log_level="info", http=protocol,
+                h11_max_incomplete_event_size=settings.max_head_bytes)
 
 
 class GuardedH11Protocol(H11Protocol):
@@ -116,10 +149,12 @@ class GuardedH11Protocol(H11Protocol):
         *,
         limits: Limits,
         per_client: Counter[str],
+        refusals: RefusalLog | None = None,
     ) -> None:
         super().__init__(config, server_state, app_state, _loop)
         self.limits = limits
         self.per_client = per_client  # open connections by client host, shared by all
+        self.refusals = refusals or RefusalLog()  # shared by all, in serve()
         self.address: str | None = None
         self.socket: asyncio.Transport = None  # type: ignore[assignment]  # uvicorn's wraps it
         self.phase: Phase | None = None
@@ -178,6 +213,26 @@ class GuardedH11Protocol(H11Protocol):
         else:
             self.socket.close()
 
+    def send_400_response(self, msg: str) -> None:
+        """uvicorn's plain-text 400 for a head h11 cannot parse. A head over h11's size limit
+        (``max_head_bytes``) gets a JSON answer naming the limit instead: 414 when the request
+        line alone is over it, else 431; then a lingering close, so that a client still sending
+        the head reads the answer rather than a reset."""
+        received, _ = self.conn.trailing_data
+        limit = self.limits.max_head_bytes
+        if len(received) <= limit:
+            super().send_400_response(msg)
+            return
+        line_end = received.find(b"\r\n")
+        if line_end < 0 or line_end > limit:
+            status, detail = 414, (f"the request line (method, URL, version) is over "
+                                   f"{limit} bytes (GRASP_MAX_HEAD_BYTES): send data in the body")
+        else:
+            status, detail = 431, (f"the request line and headers are over {limit} bytes "
+                                   "together (GRASP_MAX_HEAD_BYTES)")
+        self._answer(status, detail)
+        self._linger(until=self.loop.time() + self.limits.header_timeout_s, framed=False)
+
     def _answered_early(self) -> bool:
         """The answer is out while the client is still sending the request body."""
         return self.conn.their_state is h11.SEND_BODY and self.conn.our_state in _ANSWERED
@@ -218,7 +273,8 @@ class GuardedH11Protocol(H11Protocol):
 
     def _refuse(self) -> None:
         n = self.limits.max_per_client
-        self._log("over %d connections from this address: 429", n, warn=True)
+        self.refusals.refused(self.address, self.logger.warning,
+                              "%s - over %d connections from this address: 429", self.address, n)
         self._answer(
             429,
             f"more than {n} open connections from {self.address} "

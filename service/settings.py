@@ -69,6 +69,10 @@ class Settings(BaseSettings):
     max_body_bytes: int = Field(
         32 * 1024 * 1024, ge=1024, description="largest request body; larger ones get 413"
     )
+    max_head_bytes: int = Field(
+        16 * 1024, ge=1024, le=1024 * 1024, description="largest request line and headers "
+        "together; a longer URL gets 414, longer headers 431"
+    )
     header_timeout_s: float = Field(
         10.0,
         gt=0,

@@ -168,3 +168,54 @@ def test_connections_over_the_cap_per_address_get_429_and_other_addresses_are_se
     finally:
         for sock in idle:
             sock.close()
+
+
+def test_an_over_long_url_gets_414_and_long_headers_431_readable_by_every_client(server):
+    """A head over GRASP_MAX_HEAD_BYTES (16 KiB): JSON naming the limit, then a lingering close,
+    so urllib and http.client read the answer instead of a reset (a 1 MB URL, a 200 KB header)."""
+    url = f"{server.url}/grasp?session_id={'a' * MB}"
+    with pytest.raises(urllib.error.HTTPError) as caught:
+        urllib.request.urlopen(url, timeout=30)
+    assert caught.value.code == 414
+    assert "GRASP_MAX_HEAD_BYTES" in json.loads(caught.value.read())["detail"]
+    conn = http.client.HTTPConnection("127.0.0.1", server.port, timeout=30)
+    try:
+        conn.request("GET", "/healthz", headers={"x-padding": "b" * (200 * 1024)})
+        r = conn.getresponse()
+        detail = json.loads(r.read())["detail"]
+        assert (r.status, r.getheader("connection")) == (431, "close")
+        assert "headers are over 16384 bytes" in detail and "GRASP_MAX_HEAD_BYTES" in detail
+    finally:
+        conn.close()
+    assert httpx.get(f"{server.url}/healthz").status_code == 200
+
+
+def test_refused_connections_are_logged_once_per_address_and_interval():
+    from service.connections import RefusalLog
+
+    now = [0.0]
+    lines: list[str] = []
+    log = RefusalLog(10.0, clock=lambda: now[0])
+    for i in range(50_000):  # a client hammering: 5,000 refusals a second for 10 s
+        now[0] = i / 5000
+        log.refused("10.0.0.1", lambda m, *a: lines.append(m % a), "%s - refused", "10.0.0.1")
+    log.refused("10.0.0.2", lambda m, *a: lines.append(m % a), "%s - refused", "10.0.0.2")
+    now[0] = 10.5
+    log.refused("10.0.0.1", lambda m, *a: lines.append(m % a), "%s - refused", "10.0.0.1")
+    assert lines == ["10.0.0.1 - refused", "10.0.0.2 - refused",
+                     "10.0.0.1 - refused (49999 more since the last line)"]
+
+
+def test_a_flood_of_refused_connections_writes_a_line_or_two(server):
+    idle = [socket.create_connection(("127.0.0.1", server.port)) for _ in range(PER_CLIENT)]
+    try:
+        for _ in range(300):
+            with socket.create_connection(("127.0.0.1", server.port), timeout=HEAD_S) as extra:
+                assert extra.recv(4096).startswith(b"HTTP/1.1 429 ")
+    finally:
+        for sock in idle:
+            sock.close()
+    time.sleep(0.2)
+    lines = [line for line in server.log.read_text().splitlines()
+             if "connections from this address" in line]
+    assert 1 <= len(lines) <= 3, lines  # one per 10 s at most (an earlier test refused one too)

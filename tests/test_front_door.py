@@ -36,6 +36,9 @@ def test_document_matches_the_settings(tmp_path):
         view = doc["components"]["schemas"]["ViewIn"]
         assert [sorted(o["required"]) for o in view["oneOf"]] == [
             ["points"], ["depth", "intrinsics"], ["grid"]]
+        # what the server refuses as a pair, the schema says too
+        assert [(r["if"]["required"], r["then"]["required"]) for r in view["allOf"]] == [
+            (["support_plane"], ["camera_pose"]), (["object_label"], ["mask"])]
         body = doc["paths"]["/views"]["post"]["requestBody"]["content"]["application/json"]
         assert body["schema"] == {"$ref": "#/components/schemas/ViewIn"}
         r = client.put("/sessions/abc")
