@@ -29,6 +29,7 @@ from completion.stream import NoObjectError
 from service import inspector  # its data routes join `router` on import
 from service.deps import Services, token_problem
 from service.inputs import MAX_COORDINATE_M, InputError
+from service.memory import return_freed_memory
 from service.parsing import BODY_EXPECTED, BodyParser, field_hint
 from service.pipeline import ModelMismatch, Pipeline, TooManyViews
 from service.planning import ClientGone, Planner, PlannerBusy
@@ -152,6 +153,7 @@ async def _lifespan(app: FastAPI) -> AsyncIterator[None]:
 
     settings: Settings = app.state.settings
     torch.set_num_threads(settings.torch_threads)
+    return_freed_memory()  # big arrays given back to the system when freed (service.memory)
     model = await anyio.to_thread.run_sync(load_model, settings.model)
     store = await anyio.to_thread.run_sync(open_store, settings)
     pipeline = await anyio.to_thread.run_sync(
@@ -171,6 +173,10 @@ async def _lifespan(app: FastAPI) -> AsyncIterator[None]:
         locks=SessionLocks(),
         parser=BodyParser(
             settings.inference_workers,
+            max_body_bytes=settings.max_body_bytes,
+            body_memory=settings.body_memory_bytes,
+            decode_memory=settings.decode_memory_bytes,
+            memory_wait_s=settings.memory_wait_s,
             max_image_pixels=settings.max_image_pixels,
             max_points=settings.max_points,
             max_depth_median_m=settings.max_depth_median_m,

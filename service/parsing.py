@@ -18,16 +18,19 @@ import asyncio
 import email.message
 import json
 import multiprocessing as mp
+from collections.abc import AsyncIterator
 from concurrent.futures import ProcessPoolExecutor
+from contextlib import asynccontextmanager
 from dataclasses import dataclass
 from functools import partial
 
 import anyio.to_thread
-from fastapi import HTTPException, status
+from fastapi import HTTPException, Request, status
 from fastapi.exceptions import RequestValidationError
 from pydantic import ValidationError
 
 from service.inputs import DecodedView, InputError, decode_view
+from service.memory import ByteBudget, body_cost, decode_cost, return_freed_memory
 from service.schemas import ViewIn
 
 #: Bodies up to this size are parsed in a thread of the server process.
@@ -123,20 +126,43 @@ def parse_view(raw: bytes, content_type: str | None, **limits) -> tuple:
 
 
 class BodyParser:
-    """Parses view bodies: small ones in a thread, big ones in ``workers`` processes."""
+    """Reads and parses view bodies within the memory budgets of :mod:`service.memory`: small
+    ones in a thread, big ones in ``workers`` processes."""
 
-    def __init__(self, workers: int, *, at_once: int = 2, **limits) -> None:
+    def __init__(self, workers: int, *, at_once: int = 2, max_body_bytes: int = 32 << 20,
+                 body_memory: int = 1 << 40, decode_memory: int = 1 << 40,
+                 memory_wait_s: float = 30.0, **limits) -> None:
         self.workers = workers
         self.limits = limits  # decode_view's: image pixels, points, plausible depth
+        self.max_body_bytes = max_body_bytes
+        self.bodies = ByteBudget("request bodies (GRASP_BODY_MEMORY_BYTES)", body_memory,
+                                 memory_wait_s)
+        self.decoding = ByteBudget("decoding views (GRASP_DECODE_MEMORY_BYTES)", decode_memory,
+                                   memory_wait_s)
         self._pool: ProcessPoolExecutor | None = None
-        # bodies decoded at once, threads and processes together: each may hold a few times
-        # GRASP_MAX_IMAGE_PIXELS of arrays, so their number bounds the server's memory
+        # bodies decoded at once, threads and processes together (the CPU they take)
         self._at_once = asyncio.Semaphore(at_once)
 
     def _processes(self) -> ProcessPoolExecutor:
         if self._pool is None:  # started on the first big body: most servers never see one
-            self._pool = ProcessPoolExecutor(self.workers, mp_context=mp.get_context("spawn"))
+            self._pool = ProcessPoolExecutor(self.workers, mp_context=mp.get_context("spawn"),
+                                             initializer=return_freed_memory)
         return self._pool
+
+    @asynccontextmanager
+    async def view(self, request: Request) -> AsyncIterator[ParsedView]:
+        """The request's body read, parsed and decoded, while its bytes are reserved: the body's
+        by its Content-Length before it is read, the decoding's by the pixels it declares before
+        it is decoded; both until the caller is done with the view (its answer is out)."""
+        length = request.headers.get("content-length", "")
+        expected = int(length) if length.isdigit() else self.max_body_bytes
+        async with self.bodies.hold(body_cost(min(expected, self.max_body_bytes))):
+            raw = await request.body()
+            cost = decode_cost(raw, self.limits.get("max_image_pixels", 1 << 40))
+            async with self.decoding.hold(cost):
+                parsed = await self.parse(raw, request.headers.get("content-type"))
+                del raw
+                yield parsed
 
     async def parse(self, raw: bytes, content_type: str | None) -> ParsedView:
         job = partial(parse_view, raw, content_type, **self.limits)

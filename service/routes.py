@@ -9,6 +9,7 @@ from __future__ import annotations
 import base64
 import math
 import time
+from collections.abc import AsyncIterator
 from datetime import UTC, datetime
 from typing import Annotated
 
@@ -62,11 +63,12 @@ health_router = APIRouter()
 PathId = Annotated[str, Path(min_length=1, max_length=128, description="from POST /views")]
 
 
-async def view_body(request: Request, services: ServicesDep) -> ParsedView:
+async def view_body(request: Request, services: ServicesDep) -> AsyncIterator[ParsedView]:
     """The body, read under the size limit, then parsed, validated and decoded off the event
-    loop (:mod:`service.parsing`)."""
-    raw = await request.body()
-    return await services.parser.parse(raw, request.headers.get("content-type"))
+    loop (:mod:`service.parsing`), its memory reserved until the answer is out
+    (:mod:`service.memory`)."""
+    async with services.parser.view(request) as parsed:
+        yield parsed
 
 
 #: ``POST /views`` reads its body itself; the document still shows it as a ViewIn.

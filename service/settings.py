@@ -57,8 +57,19 @@ class Settings(BaseSettings):
         "more object pixels is thinned to every s-th pixel along both axes (a lower resolution "
         "of the same camera) before any point is made",
     )
-    max_parsing: int = Field(
-        2, ge=1, description="view bodies decoded at once (more wait): bounds the server's memory"
+    max_parsing: int = Field(2, ge=1, description="view bodies decoded at once (more wait)")
+    body_memory_bytes: int = Field(
+        64 * 1024 * 1024, ge=1024 * 1024, description="bytes of POST /views bodies held at once "
+        "(each reserves 2 × its Content-Length before it is read); more wait, then get 503"
+    )
+    decode_memory_bytes: int = Field(
+        96 * 1024 * 1024, ge=1024 * 1024, description="bytes the decoding of views may hold at "
+        "once (a depth image reserves 24 bytes a pixel it declares before it is decoded); more "
+        "wait, then get 503"
+    )
+    memory_wait_s: float = Field(
+        30.0, gt=0, description="how long a view waits for memory (body_memory_bytes, "
+        "decode_memory_bytes) before 503 with Retry-After"
     )
     max_views: int = Field(
         1000,
