@@ -23,7 +23,7 @@ The fingers do not touch each other in this model (finger–finger and finger–
 not checked; at spread 0 fingers 1/2 pass beside finger 3), so each finger's motion depends only
 on the object and the three close independently, which is the same as closing them together.
 
-Collision queries go to :class:`grasp.sim.CollisionScene` (python-fcl): a boolean overlap test
+Collision queries go to :class:`grasp.collision.CollisionScene` (python-fcl): a boolean overlap test
 per moving link with early exit, ~10-40 µs. Speed: a convex polytope around the object (k-DOP)
 gives a lower bound d on the distance to the object (fcl GJK), and no point of a moving link
 travels faster than R per unit of motion (R from the link corners), so a step of d / R is
@@ -53,8 +53,8 @@ from typing import NamedTuple
 import numpy as np
 import trimesh
 
+from grasp.collision import CollisionScene, Contact, check_pose
 from grasp.quality import EPSILON_NO_CLOSURE, MU_RUBBER, contacts_quality
-from grasp.sim import CollisionScene, Contact, check_pose
 from grasp.table import SupportPlane
 from hands.barrett import FINGERS, JOINT_NAMES
 from hands.barrett.kinematics import rotation_about
@@ -379,7 +379,7 @@ def autograsp(
     Parameters
     ----------
     mesh : trimesh.Trimesh or CollisionScene
-        The object in world coordinates (metres). Pass a :class:`grasp.sim.CollisionScene` to
+        The object in world coordinates (metres). Pass a :class:`grasp.collision.CollisionScene` to
         reuse one collision model for many grasps on the same mesh.
     palm_pose : (4, 4) float
         Initial palm→world pose; +z is the approach direction.

@@ -23,8 +23,8 @@ from dataclasses import dataclass
 import numpy as np
 import trimesh
 
+from grasp.collision import check_mesh, fibonacci_directions
 from grasp.screen import finger_reach, open_hand_lowest
-from grasp.sim import check_mesh, fibonacci_directions
 from grasp.table import SupportPlane
 
 #: Spreads (degrees) the random candidates draw from: parallel fingers, tripod, T, and between.

@@ -351,7 +351,7 @@ def grasp_joint_error(
 
     prediction : the completed mesh (None when the completion is empty)
     truth : the ground-truth object mesh in the same frame (a ``trimesh.Trimesh``, or a
-        :class:`grasp.sim.CollisionScene` built once and reused for several predictions)
+        :class:`grasp.collision.CollisionScene` built once and reused for several predictions)
 
     Plan on the prediction (:func:`grasp.planner.plan`, ``n_candidates`` seeded candidates) and
     take the best grasp's palm orientation, approach line and spread. From its pre-grasp pose
@@ -367,8 +367,8 @@ def grasp_joint_error(
     if prediction is None:
         return JointError(None, reason="empty completion: no surface to plan on")
     from grasp.autograsp import PREGRASP_BACKOFF_M, joint_error_deg, regrasp
+    from grasp.collision import CollisionScene, check_mesh
     from grasp.planner import plan
-    from grasp.sim import CollisionScene, check_mesh
 
     back = PREGRASP_BACKOFF_M if backoff is None else float(backoff)
     scene = CollisionScene(check_mesh(prediction))  # one collision model for plan and re-grasp

@@ -44,8 +44,8 @@ from grasp.candidates import (
     footprint,
     table_candidates,
 )
+from grasp.collision import CollisionScene, check_mesh
 from grasp.screen import Screen, fingertip_span
-from grasp.sim import CollisionScene, check_mesh
 from grasp.table import SupportPlane, crosses
 from hands.barrett import JOINT_NAMES
 

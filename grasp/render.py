@@ -20,7 +20,8 @@ import trimesh
 from completion.bullet import pybullet
 from completion.cli import HelpWithDefaults
 from grasp.autograsp import GraspResult
-from grasp.sim import GraspWorld, check_mesh
+from grasp.collision import check_mesh
+from grasp.sim import GraspWorld
 
 #: Field of view (degrees) of the picture cameras.
 FOV_DEG = 40.0

@@ -43,7 +43,7 @@ from grasp.autograsp import (
     regrasp,
     with_quality,
 )
-from grasp.sim import CollisionScene
+from grasp.collision import CollisionScene
 from hands.barrett import BH8_282, JOINT_NAMES
 
 SCENES = {scene.name: scene for scene in scenes()}
@@ -435,6 +435,14 @@ def test_grasp_modules_do_not_import_torch():
         "import sys, grasp.autograsp, grasp.planner, grasp.quality, grasp.sim, grasp.render, "
         "hands.barrett.urdf; assert 'torch' not in sys.modules, 'torch imported'"
     )
+    subprocess.run([sys.executable, "-c", code], check=True, cwd=GOLDEN_PATH.parents[2])
+
+
+def test_the_planner_does_not_import_pybullet():
+    """The planner's workers use the fcl scene (grasp.collision); pybullet is for pictures and
+    physics (grasp.sim, grasp.physics)."""
+    code = ("import sys, grasp.planner, grasp.autograsp, grasp.collision, grasp.candidates, "
+            "grasp.quality; assert 'pybullet' not in sys.modules, 'pybullet imported'")
     subprocess.run([sys.executable, "-c", code], check=True, cwd=GOLDEN_PATH.parents[2])
 
 

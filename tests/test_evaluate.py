@@ -533,9 +533,9 @@ def test_grasp_summary_keeps_a_pose_the_figure_can_re_run():
     from scipy.spatial.transform import Rotation
 
     from grasp.autograsp import GraspResult, HandDofs, HandJoints
+    from grasp.collision import check_pose
     from grasp.evaluate.figures import _grasp_result
     from grasp.metrics import JointError
-    from grasp.sim import check_pose
 
     fragile = None
     for seed in range(200):

@@ -1,4 +1,5 @@
-"""grasp.sim: the pybullet GraspWorld and its fcl mirror CollisionScene agree with each other."""
+"""grasp.sim and grasp.collision: the pybullet GraspWorld and its fcl mirror CollisionScene agree
+with each other."""
 
 from __future__ import annotations
 
@@ -9,7 +10,8 @@ import trimesh
 from grasp_scenes import box, mug
 from scipy.spatial.transform import Rotation
 
-from grasp.sim import CollisionScene, GraspWorld, check_mesh, check_pose
+from grasp.collision import CollisionScene, check_mesh, check_pose
+from grasp.sim import GraspWorld
 from hands.barrett import JOINT_NAMES, HandKinematics
 
 

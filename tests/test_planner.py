@@ -10,6 +10,7 @@ from scipy.spatial.transform import Rotation
 
 from grasp.autograsp import autograsp
 from grasp.candidates import STANDOFF_M, candidate_poses, principal_axes
+from grasp.collision import CollisionScene
 from grasp.planner import (
     AUTOGRASP_BUDGET,
     DISTINCT_DEG,
@@ -21,7 +22,6 @@ from grasp.planner import (
     plan,
     rank_key,
 )
-from grasp.sim import CollisionScene
 from grasp.table import SupportPlane, crosses, hand_clearance, hand_points
 
 

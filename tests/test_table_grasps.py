@@ -19,9 +19,9 @@ from scipy.spatial.transform import Rotation
 
 from grasp.autograsp import autograsp
 from grasp.candidates import TABLE_CLEARANCE_M, table_candidates
+from grasp.collision import CollisionScene
 from grasp.planner import plan
 from grasp.screen import Screen, finger_reach, open_hand_lowest
-from grasp.sim import CollisionScene
 from grasp.table import TABLE_TOL_M, SupportPlane, hand_clearance, hand_primitives
 
 FLOOR = SupportPlane(np.array([0.0, 0.0, 1.0]), 0.0)  # the table z = 0

@@ -315,7 +315,7 @@ class Evaluator:
         grasps: dict[str, dict] = {}
         physics: dict[str, dict] = {}
         if job.grasp and not job.light and job.condition in SINGLE_OBJECT_CONDITIONS:
-            from grasp.sim import CollisionScene
+            from grasp.collision import CollisionScene
 
             truth_mesh = truth_mesh_in_latest_camera(seq)
             truth_scene = CollisionScene(truth_mesh)  # built once, reused

@@ -14,8 +14,8 @@ import trimesh
 from scipy.spatial import ConvexHull, HalfspaceIntersection, QhullError
 
 from completion.bullet import direct_client, quiet_fds
+from grasp.collision import check_mesh
 from grasp.physics.settings import DENSITY_KG_M3, VHACD_OPTIONS
-from grasp.sim import check_mesh
 
 log = logging.getLogger(__name__)
 _CACHE_VERSION = "1"

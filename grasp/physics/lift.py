@@ -11,6 +11,7 @@ import trimesh
 from scipy.spatial.transform import Rotation
 
 from grasp.autograsp import GraspResult, pregrasp_pose
+from grasp.collision import check_mesh, check_pose
 from grasp.physics.settings import (
     APPROACHES,
     DEFAULT_SETTINGS,
@@ -22,7 +23,6 @@ from grasp.physics.settings import (
 )
 from grasp.physics.world import DynamicWorld
 from grasp.quality import MU_RUBBER
-from grasp.sim import check_mesh, check_pose
 from hands.barrett import BH8_282, BarrettParams
 
 

@@ -14,6 +14,7 @@ import numpy as np
 import trimesh
 
 from completion.bullet import direct_client, pose_to_pybullet, pybullet
+from grasp.collision import check_mesh, check_pose
 from grasp.physics.body import convex_decomposition, mass_properties, shrink, write_pieces
 from grasp.physics.settings import (
     DEFAULT_SETTINGS,
@@ -23,7 +24,7 @@ from grasp.physics.settings import (
     LiftSettings,
 )
 from grasp.quality import MU_RUBBER
-from grasp.sim import JointInfo, check_mesh, check_pose
+from grasp.sim import JointInfo
 from hands.barrett import BH8_282, FINGERS, JOINT_NAMES, BarrettParams
 
 

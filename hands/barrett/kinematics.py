@@ -1,9 +1,9 @@
 """BarrettHand kinematics from :class:`BarrettParams`: joints, links, collision shapes, coupling.
 
 This module is the single description of the hand's structure. The URDF
-(:mod:`hands.barrett.urdf`) and the collision model used by autograsp (:mod:`grasp.sim`) are both
-built from :class:`HandKinematics`, so the two cannot drift apart (a test loads the URDF in pybullet
-and compares its link frames with :meth:`HandKinematics.link_poses`).
+(:mod:`hands.barrett.urdf`) and the collision model used by autograsp (:mod:`grasp.collision`)
+are both built from :class:`HandKinematics`, so the two cannot drift apart (a test loads the URDF
+in pybullet and compares its link frames with :meth:`HandKinematics.link_poses`).
 
 Frames (all right-handed, metres):
 
