@@ -118,7 +118,7 @@ def require_token(
 ) -> None:
     """401 unless the request carries ``Authorization: Bearer <GRASP_TOKEN>`` (when one is set).
 
-    :class:`service.app.TokenGate` has already checked this before the body was read; this
+    :class:`service.middleware.TokenGate` has already checked this before the body was read; this
     dependency declares the scheme in the OpenAPI document and guards in-process callers."""
     token = services.settings.token
     if token is None:

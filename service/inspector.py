@@ -19,12 +19,11 @@ from pathlib import Path as FilePath
 
 import numpy as np
 import trimesh
-from fastapi import APIRouter, Request, Response
+from fastapi import APIRouter, Depends, Request, Response
 from fastapi.responses import FileResponse
-from fastapi.staticfiles import StaticFiles
 
 from grasp_client.wire import SupportPlane
-from service.deps import ServicesDep
+from service.deps import ServicesDep, require_token
 from service.routes import (
     NCandidates,
     PathId,
@@ -32,7 +31,6 @@ from service.routes import (
     TopK,
     _errors,
     plan_session,
-    router,
 )
 from service.schemas import GraspsOut, ObservedOut
 
@@ -40,13 +38,10 @@ STATIC = FilePath(__file__).resolve().parent / "static" / "inspector"
 #: Side of the square drawn for the support plane, in units of the completion's size.
 PLANE_SCALE = 3.0
 
+#: The page (public: a browser cannot send the token with a link); its assets are STATIC.
 page_router = APIRouter()
-
-
-def mount(app) -> None:
-    """Add the page, its assets and its data routes to ``app``."""
-    app.include_router(page_router)
-    app.mount("/static/inspector", StaticFiles(directory=STATIC), name="inspector")
+#: What the page fetches, with the token as every data route.
+data_router = APIRouter(dependencies=[Depends(require_token)], responses=_errors(401, 413, 422))
 
 
 @page_router.get(
@@ -63,7 +58,7 @@ async def view_page(session_id: PathId) -> FileResponse:
     return FileResponse(STATIC / "index.html", media_type="text/html")
 
 
-@router.get(
+@data_router.get(
     "/sessions/{session_id}/observed", response_model=ObservedOut, responses=_errors(404, 409)
 )
 async def get_observed(session_id: PathId, services: ServicesDep) -> ObservedOut:
@@ -76,7 +71,7 @@ async def get_observed(session_id: PathId, services: ServicesDep) -> ObservedOut
     )
 
 
-@router.get(
+@data_router.get(
     "/sessions/{session_id}/scene.glb",
     response_class=Response,
     responses={
