@@ -102,24 +102,6 @@ def test_names_are_accepted_as_the_tables_print_them():
     assert name_list(ev.CONDITIONS, "conditions")("Camera Pan") == ("camera_pan",)
 
 
-def test_physics_count_comes_from_the_preset_or_the_command_line():
-    parser = ev.build_parser()
-    models = ["--models", ev.FUSION]
-    for argv, expected in (
-        ([], 5),
-        (["--quick"], 1),
-        (["--full"], 10),
-        (["--physics-count", "0"], 0),
-        (["--quick", "--physics-count", "3"], 3),
-    ):
-        args = parser.parse_args(models + argv)
-        assert ev.settings_from_args(args, parser).physics_count == expected, argv
-    jobs = ev.make_jobs(ev.Settings(rows=(ev.FUSION,), count=3, grasp_count=2, physics_count=5))
-    main = [j for j in jobs if j.table == ev.MAIN_TABLE and j.split == "test"]
-    assert [j.physics for j in main[:3]] == [True, True, False]  # grasped ones only
-    assert not any(j.physics for j in jobs if j.split == "train")  # the test split's only
-
-
 def test_missing_weights_name_the_file_and_the_train_command(tmp_path, capsys):
     with pytest.raises(SystemExit) as exc:
         ev.main(["--weights", str(tmp_path), "--models", "mvp3,registered_fusion"])

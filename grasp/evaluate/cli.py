@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import os
 import time
@@ -13,7 +14,7 @@ from completion.objects import load_object, objects_in_folder
 from completion.prior import PRIOR_FILE
 from completion.scenes import CONDITIONS, VIEWS
 from grasp.evaluate.aggregate import build_results
-from grasp.evaluate.config import PRESETS, PRIOR, ROWS, Settings, checkpoints_needed
+from grasp.evaluate.config import PRESETS, PRIOR, ROWS, Preset, Settings, checkpoints_needed
 from grasp.evaluate.figures import write_figures
 from grasp.evaluate.report import markdown_report
 from grasp.evaluate.runner import make_jobs, run_jobs
@@ -242,27 +243,21 @@ def settings_from_args(args: argparse.Namespace, parser: argparse.ArgumentParser
             f"`python -m completion.prior --out {prior_path}`, pass --weights DIR, or leave "
             "the row out with --models.\n",
         )
-    count = args.count if args.count is not None else preset.count
+    given = {f.name: getattr(args, f.name) for f in dataclasses.fields(Preset)
+             if getattr(args, f.name) is not None}
+    if "count" in given and "grasp_count" not in given:  # grasp no more than is counted
+        given["grasp_count"] = min(given["count"], preset.grasp_count)
+    sizes = dataclasses.replace(preset, **given)
     return Settings(
+        **dataclasses.asdict(sizes),
         rows=tuple(args.models),
         model_paths=tuple(paths),
         prior_path=str(prior_path) if PRIOR in args.models else "",
         conditions=tuple(args.conditions),
-        count=count,
-        grasp_count=args.grasp_count if args.grasp_count is not None
-        else preset.grasp_count if args.count is None else min(count, preset.grasp_count),
-        physics_count=args.physics_count
-        if args.physics_count is not None
-        else preset.physics_count,
-        named=args.named if args.named is not None else preset.named,
-        overhead=args.overhead if args.overhead is not None else preset.overhead,
-        sensor=args.sensor if args.sensor is not None else preset.sensor,
-        benchmark=args.benchmark if args.benchmark is not None else preset.benchmark,
         benchmark_candidates=args.benchmark_candidates,
         objects=objects,
         views=args.views,
         seed=args.seed,
-        candidates=args.candidates if args.candidates is not None else preset.candidates,
         workers=workers,
         ray=args.ray,
         examples=not args.no_figures,
