@@ -60,7 +60,7 @@ def test_benchmark_records_of_six_objects_are_pinned():
             scene = b.make_scene(object_id, index, 0, renderer)
             assert abs(scene.mesh.bounds[0, 2]) < 1e-9  # resting on the table z = 0
             assert scene.mask.any(axis=(1, 2)).all()  # every view sees it
-            rows = b.run_object(scene, {}, {}, ["true_mesh"], candidates=64, seed=index)
+            rows = b.run_object(scene, {}, ["true_mesh"], candidates=64, seed=index)
             record, pinned = b.object_record(object_id, scene.mesh, rows), golden[index]
             assert (record["id"], record["size_m"]) == (pinned["id"], pinned["size_m"])
             assert record["mass_kg"] == pytest.approx(pinned["mass_kg"], abs=1e-4)

@@ -52,7 +52,8 @@ sequence's identity, and every worker runs torch on one thread, so the numbers d
 ``--workers``.
 
 The package: :mod:`~grasp.evaluate.config` (rows, metrics, presets, settings, the paper's
-numbers), :mod:`~grasp.evaluate.runner` (one sequence; the process pool),
+numbers), :mod:`~grasp.evaluate.rows` (each row an object that turns views into probabilities),
+:mod:`~grasp.evaluate.runner` (one sequence; the process pool),
 :mod:`~grasp.evaluate.aggregate` (cells and counts), :mod:`~grasp.evaluate.report` (results.md),
 :mod:`~grasp.evaluate.figures` (the PNGs) and :mod:`~grasp.evaluate.cli` (the command line).
 """
@@ -73,7 +74,8 @@ from grasp.evaluate.config import (
     Settings,
 )
 from grasp.evaluate.report import markdown_report
-from grasp.evaluate.runner import Evaluator, make_jobs, registered_fusion, run_jobs
+from grasp.evaluate.rows import registered_fusion
+from grasp.evaluate.runner import Evaluator, make_jobs, run_jobs
 
 __all__ = [
     "CONDITIONS",

@@ -117,14 +117,16 @@ def make_scene(object_id: str, index: int, seed: int, renderer) -> Scene:
                  renderer.intrinsics)
 
 
-def completion_mesh(scene: Scene, source: str, views: int, models: dict, thresholds: dict):
+def completion_mesh(scene: Scene, source: str, views: int, models: dict):
     """The mesh a row plans on (camera frame of its last view) and that camera's pose; the mesh
-    is None when the completion is empty."""
+    is None when the completion is empty. ``models``: name -> :class:`~grasp.evaluate.rows.
+    ModelRow` (MVP's grid, cut at the table, is the fusion's too)."""
     from completion.mesh import EmptyMeshError, grid_to_mesh
     from completion.stream import CompletionStream
+    from grasp.evaluate.rows import fuse
 
-    stream = CompletionStream(models["mvp" if source == "fusion" else source],
-                              threshold=thresholds.get(source))
+    row = models["mvp" if source == "fusion" else source]
+    stream = CompletionStream(row.model, threshold=None if source == "fusion" else row.decision)
     seen = []
     for t in range(views):
         stream.add_view(depth=scene.depth[t], intrinsics=scene.intrinsics, mask=scene.mask[t],
@@ -137,8 +139,7 @@ def completion_mesh(scene: Scene, source: str, views: int, models: dict, thresho
     c = stream.completion()  # cut at the table
     probabilities, threshold = c.probabilities, c.threshold
     if source == "fusion":  # every point seen so far, in the last view's grid, cut the same way
-        merged = G.transform_points(np.concatenate(seen), np.linalg.inv(camera))
-        occupied = G.voxelize_points(merged, c.grid_to_camera)
+        occupied = fuse(seen, c.grid_to_camera, camera)
         occupied &= ~G.voxels_below_plane(c.grid_to_camera, G.plane_in_frame(TABLE, camera))
         probabilities, threshold = occupied.astype(np.float32), 0.5
     try:
@@ -157,7 +158,7 @@ def grasp_kind(grasp, up: np.ndarray = TABLE[:3]) -> str:
             f"{'from above' if above else 'from the side'}")
 
 
-def run_object(scene: Scene, models: dict, thresholds: dict, rows, *, candidates: int,
+def run_object(scene: Scene, models: dict, rows, *, candidates: int,
                seed: int) -> dict[str, dict]:
     """row -> {"held", "reason", "kind", "planned_joints_deg", "executed_joints_deg",
     "hold_probability", "palm_pose"} for one object (the palm pose in the world frame)."""
@@ -172,7 +173,7 @@ def run_object(scene: Scene, models: dict, thresholds: dict, rows, *, candidates
         if source is None:
             mesh, camera = scene.mesh, np.eye(4)
         else:
-            mesh, camera = completion_mesh(scene, source, views, models, thresholds)
+            mesh, camera = completion_mesh(scene, source, views, models)
         if mesh is None:
             out[row] = {"held": False, "reason": "empty completion"}
             continue

@@ -25,24 +25,21 @@ from completion.scenes import (
 )
 from grasp.evaluate.config import (
     BENCHMARK_TABLE,
-    DEFAULT_THRESHOLD,
     EVAL_SPLITS,
     FOLDER_TABLE,
     FUSION,
     MAIN_TABLE,
-    MEMORY_OFF,
     NAMED_OBJECTS_TABLE,
     OBJECT_TABLE_CONDITION,
     OVERHEAD_MIN_ELEVATION_DEG,
     OVERHEAD_TABLE,
-    PRIOR,
     SENSOR_TABLE,
     TRUE_MESH,
     Job,
     Settings,
-    checkpoints_needed,
     figure_rows,
 )
+from grasp.evaluate.rows import load_models, make_rows
 
 STAGES: tuple[str, ...] = (
     "generation",
@@ -106,40 +103,6 @@ class SequenceResult:
     benchmark: dict = field(default_factory=dict)
 
 
-# ------------------------------------------------------------------------------ fusion baseline
-
-#: Sub-voxel offsets (in voxels) at which an observed voxel is carried into another grid, so that
-#: a coarser source grid leaves no holes in a finer destination grid.
-_SUBVOXEL = np.array(
-    [[x, y, z] for x in (-0.25, 0.25) for y in (-0.25, 0.25) for z in (-0.25, 0.25)]
-)
-
-
-def registered_fusion(
-    inputs: np.ndarray, grid_to_camera: np.ndarray, camera_to_world: np.ndarray
-) -> np.ndarray:
-    """The known-pose reference: (L, 40, 40, 40) bool, view t = union of views 0…t in grid t.
-
-    inputs : (L, 40, 40, 40) bool observed voxels; grid_to_camera, camera_to_world : (L, 4, 4)
-    Each observed voxel (8 sub-voxel points) goes grid s → camera s → world → camera t → grid t.
-    """
-    inputs = np.asarray(inputs, dtype=bool)
-    n = len(inputs)
-    if inputs.shape[1:] != G.GRID_SHAPE or grid_to_camera.shape != (n, 4, 4):
-        raise ValueError("inputs must be (L, 40, 40, 40) with (L, 4, 4) transforms")
-    fused = np.zeros_like(inputs)
-    world: list[np.ndarray] = []
-    for t in range(n):
-        idx = np.argwhere(inputs[t]).astype(np.float64)
-        sub = (idx[:, None, :] + _SUBVOXEL[None]).reshape(-1, 3)
-        cam = G.indices_to_points(sub, grid_to_camera[t])
-        world.append(G.transform_points(cam, camera_to_world[t]))
-        seen = np.concatenate(world)
-        to_camera_t = np.linalg.inv(camera_to_world[t])
-        fused[t] = G.voxelize_points(G.transform_points(seen, to_camera_t), grid_to_camera[t])
-    return fused
-
-
 # ------------------------------------------------------------------------------ per-sequence work
 
 
@@ -167,65 +130,25 @@ def below_plane(occupied: np.ndarray, seq: Sequence, view: int) -> float:
 
 
 class Evaluator:
-    """Owns what a worker keeps between sequences: a renderer, the loaded models, the prior."""
+    """Owns what a worker keeps between sequences: a renderer, the loaded models, the rows."""
 
     def __init__(self, settings: Settings) -> None:
-        import torch
-
-        from completion.model import load_model, read_checkpoint
-        from completion.prior import load_prior
         from completion.render import Renderer
 
         self.settings = settings
         self.renderer = Renderer()
-        self.models = {}
-        self.thresholds: dict[str, float] = {}
-        needed = checkpoints_needed(settings.rows)
-        for name, path in settings.model_paths:
-            if name not in needed:
-                continue
-            model = load_model(path).eval()
-            # the validation-chosen decision threshold: an attribute of the loaded model, or the
-            # checkpoint's "threshold" entry, else 0.5
-            threshold = getattr(model, "threshold", None)
-            if threshold is None:
-                threshold = read_checkpoint(path).get("threshold", DEFAULT_THRESHOLD)
-            self.thresholds[name] = float(threshold)
-            self.models[name] = model
-        self.prior = load_prior(settings.prior_path) if PRIOR in settings.rows else None
-        self.thresholds[FUSION] = 0.5  # a bool grid: meshed between empty and occupied
-        if MEMORY_OFF in settings.rows:
-            self.thresholds[MEMORY_OFF] = self.thresholds["mvp"]
-        self._torch = torch
+        self.models = load_models(settings)  # the checkpoints, by name (the benchmark's too)
+        self.rows = make_rows(settings, self.models)
 
     def close(self) -> None:
         self.renderer.close()
 
     def threshold(self, row: str, condition: str) -> float:
-        if row == PRIOR:
-            assert self.prior is not None
-            return self.prior.thresholds[condition]
-        return self.thresholds[row]
+        return self.rows[row].threshold(condition)
 
     def probabilities(self, seq: Sequence) -> dict[str, np.ndarray]:
         """row -> (L, 40, 40, 40) occupancy probabilities (bool for the fusion reference)."""
-        torch = self._torch
-        x = torch.from_numpy(seq.inputs[None].astype(np.float32))
-        out: dict[str, np.ndarray] = {}
-        with torch.no_grad():
-            for name in self.settings.rows:
-                if name == FUSION:
-                    out[name] = registered_fusion(
-                        seq.inputs, seq.grid_to_camera, seq.camera_to_world
-                    )
-                elif name == PRIOR:
-                    assert self.prior is not None
-                    out[name] = self.prior.probabilities(seq.meta["condition"], len(seq))
-                elif name == MEMORY_OFF:  # the L views as L sequences of one view each
-                    out[name] = torch.sigmoid(self.models["mvp"](x[0][:, None]))[:, 0].numpy()
-                else:
-                    out[name] = torch.sigmoid(self.models[name](x))[0].numpy()
-        return out
+        return {name: row.probabilities(seq) for name, row in self.rows.items()}
 
     def benchmark_rows(self) -> list[str]:
         """The grasp-benchmark rows this run's models allow (the true mesh always)."""
@@ -247,7 +170,7 @@ class Evaluator:
         scene = b.make_scene(object_id, job.index, self.settings.seed, self.renderer)
         seed = key_seed(self.settings.seed, job.table, job.index)
         with quiet_fds(1):
-            outcome = b.run_object(scene, self.models, self.thresholds, self.benchmark_rows(),
+            outcome = b.run_object(scene, self.models, self.benchmark_rows(),
                                    candidates=self.settings.benchmark_candidates, seed=seed)
         clock.charge("benchmark")
         record = b.object_record(object_id, scene.mesh, outcome)
