@@ -40,8 +40,10 @@ def interpreter(version: str) -> str:
 def make_venv(root: Path, version: str, numpy: str) -> Path:
     venv = root / f"py{version}"
     subprocess.run([interpreter(version), "-m", "venv", str(venv)], check=True)
+    source = root / f"client-source-{version}"  # a copy: the build writes egg-info beside it
+    shutil.copytree(CLIENT, source, ignore=shutil.ignore_patterns("*.egg-info", "__pycache__"))
     pip = [str(venv / "bin" / "python"), "-m", "pip", "install", "-q"]
-    done = subprocess.run([*pip, numpy, str(CLIENT)], capture_output=True, text=True)
+    done = subprocess.run([*pip, numpy, str(source)], capture_output=True, text=True)
     assert done.returncode == 0, done.stderr[-3000:]
     return venv
 
@@ -70,6 +72,7 @@ def test_the_client_alone_gets_a_typed_grasp_from_a_real_server(venvs, server, v
     listed = subprocess.run([python, "-m", "pip", "list", "--format=json"], capture_output=True,
                             text=True, check=True)
     installed = {p["name"].lower(): p["version"] for p in json.loads(listed.stdout)}
+    print(f"Python {version}: numpy {installed['numpy']}, httpx {installed['httpx']}")
     assert not SERVER_ONLY & set(installed), installed
     assert installed["numpy"].startswith("1.26" if numpy == "numpy<2" else "2.")
     example = CLIENT / "examples" / "grasp_from_file.py"
