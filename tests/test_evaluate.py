@@ -18,7 +18,8 @@ from completion.model import WEIGHTS_DIR, build_model, save_checkpoint
 from completion.scenes import CONDITIONS, SINGLE_OBJECT_CONDITIONS
 from grasp import evaluate as ev
 from grasp.evaluate.aggregate import aggregate
-from grasp.evaluate.runner import Evaluator, SequenceResult
+from grasp.evaluate.records import SequenceResult
+from grasp.evaluate.runner import Evaluator
 from hands.barrett import JOINT_NAMES
 
 ROOT = Path(__file__).resolve().parents[1]

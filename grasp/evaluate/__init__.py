@@ -53,12 +53,17 @@ sequence's identity, and every worker runs torch on one thread, so the numbers d
 
 The package: :mod:`~grasp.evaluate.config` (rows, metrics, presets, settings, the paper's
 numbers), :mod:`~grasp.evaluate.rows` (each row an object that turns views into probabilities),
-:mod:`~grasp.evaluate.runner` (one sequence; the process pool),
-:mod:`~grasp.evaluate.aggregate` (cells and counts), :mod:`~grasp.evaluate.report` (results.md),
-:mod:`~grasp.evaluate.figures` (the PNGs) and :mod:`~grasp.evaluate.cli` (the command line).
+:mod:`~grasp.evaluate.records` (a sequence's result, stage timings),
+:mod:`~grasp.evaluate.runner` (one sequence; the process pool), :mod:`~grasp.evaluate.tables`
+(every table beyond the main ones, one module each: sensor, overhead, benchmark, objects),
+:mod:`~grasp.evaluate.aggregate` (the main tables' cells and counts),
+:mod:`~grasp.evaluate.results` (all of results.json), :mod:`~grasp.evaluate.cells` (means and
+their Markdown), :mod:`~grasp.evaluate.report` (results.md), :mod:`~grasp.evaluate.figures` (the
+PNGs), :mod:`~grasp.evaluate.benchmark` (the benchmark's scenes and lift tests) and
+:mod:`~grasp.evaluate.cli` (the command line).
 """
 
-from grasp.evaluate.aggregate import aggregate, build_results
+from grasp.evaluate.aggregate import aggregate
 from grasp.evaluate.cli import build_parser, evaluate, main, settings_from_args
 from grasp.evaluate.config import (
     CONDITIONS,
@@ -74,6 +79,7 @@ from grasp.evaluate.config import (
     Settings,
 )
 from grasp.evaluate.report import markdown_report
+from grasp.evaluate.results import build_results
 from grasp.evaluate.rows import registered_fusion
 from grasp.evaluate.runner import Evaluator, make_jobs, run_jobs
 

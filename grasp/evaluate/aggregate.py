@@ -2,51 +2,26 @@
 
 from __future__ import annotations
 
-from collections.abc import Iterable
-
 import numpy as np
 
-from completion.scenes import CONDITIONS, NOISY_BY_DEFAULT, SINGLE_OBJECT_CONDITIONS
+from completion.scenes import CONDITIONS, SINGLE_OBJECT_CONDITIONS
+from grasp.evaluate.cells import mean_and_se, mean_or_none
 from grasp.evaluate.config import (
     BENCHMARK_TABLE,
     EVAL_SPLITS,
-    FOLDER_TABLE,
     FSCORE_METRICS,
     GRASP_SUCCESS,
     MAIN_TABLE,
     MEMORY_OFF,
     METRICS,
-    NAMED_OBJECTS_TABLE,
-    OBJECT_TABLE_CONDITION,
-    OVERHEAD_MIN_ELEVATION_DEG,
-    OVERHEAD_TABLE,
-    PAPER_TABLES,
-    SENSOR_TABLE,
     TRUE_MESH,
     Settings,
 )
-from grasp.evaluate.runner import SequenceResult, Timings
+from grasp.evaluate.records import SequenceResult
 from hands.barrett import JOINT_NAMES
 
 #: results.json key of each grasp metric inside a ``JointError.as_dict()``.
 _JOINT_KEYS = {"joint_error_deg": "error_deg", "joint_error_moving_deg": "error_moving_deg"}
-
-
-def mean_or_none(values: Iterable[float | None]) -> float | None:
-    """Mean of the values that are not None, rounded to 4 places; None when there are none."""
-    vals = [v for v in values if v is not None]
-    return round(float(np.mean(vals)), 4) if vals else None
-
-
-def mean_and_se(values: Iterable[float]) -> dict | None:
-    """Mean and standard error (sample SD / √n) of per-sequence values, 4 places; the SE is
-    None for one value; None for none."""
-    vals = np.asarray(list(values), dtype=float)
-    if vals.size == 0:
-        return None
-    se = float(np.std(vals, ddof=1) / np.sqrt(vals.size)) if vals.size > 1 else None
-    return {"mean": round(float(vals.mean()), 4), "se": None if se is None else round(se, 4),
-            "n": int(vals.size)}
 
 
 def _precision(seqs: list[SequenceResult], row: str, rows: tuple[str, ...]) -> dict:
@@ -215,7 +190,7 @@ def _by_joint(values: np.ndarray) -> dict[str, float]:
     return dict(zip(JOINT_NAMES, np.round(values, 4).tolist(), strict=True))
 
 
-def _pooled_per_joint(results: list[SequenceResult], settings: Settings) -> dict:
+def pooled_per_joint(results: list[SequenceResult], settings: Settings) -> dict:
     """row -> joint -> mean |Δθ| over every grasped main-table sequence (both splits)."""
     out = {}
     for row in settings.rows:
@@ -227,128 +202,4 @@ def _pooled_per_joint(results: list[SequenceResult], settings: Settings) -> dict
             and r.grasps[row]["per_joint_deg"] is not None
         ]
         out[row] = _by_joint(np.mean(joints, axis=0)) if joints else None
-    return out
-
-
-def sensor_table(results: list[SequenceResult], settings: Settings) -> dict | None:
-    """results.json's ``sensor_noise``: the test split's first ``settings.sensor`` sequences of
-    each condition seen through the sensor model (``jaccard``) and the very same sequences without
-    it (``noiseless``), each a mean ± SE per row and condition, and their paired ``difference``
-    (mean ± SE of the per-sequence differences); None when the run has no sensor table. One side
-    comes from the main table where it has the sequence (noiseless for the paper's five, with the
-    sensor for tabletop), the other from the sensor table's own jobs."""
-    if not any(r.job.table == SENSOR_TABLE for r in results):
-        return None
-
-    def noisy(r: SequenceResult) -> bool:
-        return r.job.condition in NOISY_BY_DEFAULT if r.job.noise is None else r.job.noise
-
-    sides: dict[tuple[str, bool], dict[int, SequenceResult]] = {}
-    for r in results:
-        main = r.job.table == MAIN_TABLE and r.job.split == "test"
-        if r.job.table == SENSOR_TABLE or (main and r.job.index < settings.sensor):
-            sides.setdefault((r.job.condition, noisy(r)), {})[r.job.index] = r
-    conditions = sorted({c for c, _ in sides}, key=CONDITIONS.index)
-    out: dict = {"split": "test", "jaccard": {}, "noiseless": {}, "difference": {}, "n": {}}
-    for row in settings.rows:
-        for key in ("jaccard", "noiseless", "difference", "n"):
-            out[key][row] = {}
-        for c in conditions:
-            with_sensor, without = sides.get((c, True), {}), sides.get((c, False), {})
-            paired = sorted(set(with_sensor) & set(without))
-            a, b = ([float(np.mean(side[i].per_view[row]["jaccard"])) for i in paired]
-                    for side in (with_sensor, without))
-            out["jaccard"][row][c] = mean_and_se(a)
-            out["noiseless"][row][c] = mean_and_se(b)
-            out["difference"][row][c] = mean_and_se([x - y for x, y in zip(a, b, strict=True)])
-            out["n"][row][c] = len(paired)
-    return out
-
-
-def overhead_table(results: list[SequenceResult], settings: Settings) -> dict | None:
-    """results.json's ``tabletop_overhead``: every view of the overhead table's tabletop
-    sequences taken from at least :data:`OVERHEAD_MIN_ELEVATION_DEG` of elevation, per row: mean
-    Jaccard and the mean share of the completion below the table (before any cut), with the
-    target's own share (voxels the table's surface cuts) as the floor; None without such views."""
-    views = [(r, v) for r in results if r.job.table == OVERHEAD_TABLE
-             for v, e in enumerate(r.elevation_deg) if e >= OVERHEAD_MIN_ELEVATION_DEG]
-    if not views:
-        return None
-    return {
-        "min_elevation_deg": OVERHEAD_MIN_ELEVATION_DEG,
-        "views": len(views),
-        "sequences": len({id(r) for r, _ in views}),
-        "searched": sum(r.job.table == OVERHEAD_TABLE for r in results),
-        "jaccard": {row: mean_or_none(r.per_view[row]["jaccard"][v] for r, v in views)
-                    for row in settings.rows},
-        "below_plane_share": {row: mean_or_none(r.per_view[row]["below_plane"][v]
-                                                for r, v in views) for row in settings.rows},
-        "target_below_plane_share": mean_or_none(r.ceiling["below_plane"][v] for r, v in views),
-    }
-
-
-def benchmark_table(results: list[SequenceResult]) -> dict | None:
-    """results.json's ``grasp_benchmark`` (:func:`grasp.evaluate.benchmark.summarise`); None when
-    the run had no benchmark."""
-    from grasp.evaluate.benchmark import BENCHMARK_ROWS, summarise
-
-    mine = [r for r in results if r.job.table == BENCHMARK_TABLE]
-    if not mine:
-        return None
-    rows = [row for row in BENCHMARK_ROWS if any(row in r.benchmark["rows"] for r in mine)]
-    return summarise([r.benchmark["rows"] for r in mine], rows)
-
-
-def build_results(results: list[SequenceResult], settings: Settings, wall: dict) -> dict:
-    """Everything results.json holds, from the per-sequence results of one run."""
-    from grasp.evaluate.config import config_dict
-
-    timings = Timings()
-    for r in results:
-        timings.add(r.timings)
-    main = aggregate(results, settings, MAIN_TABLE)
-    out = {
-        "tables": main["tables"],
-        "counts": main["counts"],
-        "fscore_ceiling": fscore_ceiling(main["ceiling"]),
-        "grasp_success_counts": main["grasp_success_counts"],
-        "grasp_failures": main["grasp_failures"],
-        "joint_error_per_joint_deg": main["joint_error_per_joint_deg"],
-        "pooled_joint_error_per_joint_deg": _pooled_per_joint(results, settings),
-        "per_view_jaccard": main["per_view_jaccard"],
-        "jaccard_precision": main["jaccard_precision"],
-        "named_objects": None,
-        "objects_dir": None,
-        "sensor_noise": sensor_table(results, settings),
-        "tabletop_overhead": overhead_table(results, settings),
-        "grasp_benchmark": benchmark_table(results),
-        "grasp_benchmark_objects": [r.benchmark for r in results
-                                    if r.job.table == BENCHMARK_TABLE],
-        "per_object": per_object_records(results, settings),
-        "config": config_dict(settings),
-        "paper_tables": PAPER_TABLES,
-        "timings_s": {
-            "stages_wall_summed_over_sequences": {k: round(v, 2) for k, v in timings.wall.items()},
-            "stages_cpu_summed_over_sequences": {k: round(v, 2) for k, v in timings.cpu.items()},
-            "wall": {k: round(v, 2) for k, v in wall.items()},
-        },
-    }
-    for table, key in ((NAMED_OBJECTS_TABLE, "named_objects"), (FOLDER_TABLE, "objects_dir")):
-        if any(r.job.table == table for r in results):
-            agg = aggregate(results, settings, table)
-            c = OBJECT_TABLE_CONDITION
-            out[key] = {
-                "condition": c,
-                "split": "test",
-                "tables": {
-                    m: {row: agg["tables"][m][row][c]["test"] for row in settings.rows}
-                    for m in METRICS
-                },
-                "counts": {row: agg["counts"][row][c]["test"] for row in settings.rows},
-                "grasp_failures": {
-                    row: agg["grasp_failures"][row][c]["test"] for row in settings.rows
-                },
-                "fscore_ceiling": agg["ceiling"][c]["test"],
-                "objects": [r.object_ids[0] for r in results if r.job.table == table],
-            }
     return out

@@ -13,10 +13,10 @@ from completion.cli import HelpWithDefaults, integer_at_least, name_list
 from completion.objects import load_object, objects_in_folder
 from completion.prior import PRIOR_FILE
 from completion.scenes import CONDITIONS, VIEWS
-from grasp.evaluate.aggregate import build_results
 from grasp.evaluate.config import PRESETS, PRIOR, ROWS, Preset, Settings, checkpoints_needed
 from grasp.evaluate.figures import write_figures
 from grasp.evaluate.report import markdown_report
+from grasp.evaluate.results import build_results
 from grasp.evaluate.runner import make_jobs, run_jobs
 
 

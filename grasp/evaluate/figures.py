@@ -18,7 +18,8 @@ from grasp.evaluate.config import (
     ROW_LABELS,
     figure_rows,
 )
-from grasp.evaluate.runner import SequenceResult, truth_mesh_in_latest_camera
+from grasp.evaluate.records import SequenceResult
+from grasp.evaluate.runner import truth_mesh_in_latest_camera
 
 
 def _projections(occupancy: np.ndarray) -> np.ndarray:

@@ -5,15 +5,13 @@ from __future__ import annotations
 
 from collections.abc import Iterable
 
-import numpy as np
-
 from completion.scenes import SINGLE_OBJECT_CONDITIONS
+from grasp.evaluate.cells import CEILING_LABEL, best, fmt, pm
 from grasp.evaluate.config import (
     CONDITION_LABELS,
     FSCORE_METRICS,
     GRASP_SUCCESS,
     GRASP_SUCCESS_TITLE,
-    HIGHER_IS_BETTER,
     JOINT_METRICS,
     METRIC_TITLES,
     METRICS,
@@ -24,25 +22,8 @@ from grasp.evaluate.config import (
     TABLE_ORDER,
     TRUE_MESH,
 )
+from grasp.evaluate.tables import TABLES
 from hands.barrett import JOINT_NAMES
-
-CEILING_LABEL = "Ceiling: the 40³ target itself"
-
-
-def _fmt(value: float | None, metric: str) -> str:
-    if value is None:
-        return "—"
-    if metric == GRASP_SUCCESS:
-        return f"{100 * value:.0f}%"
-    return f"{value:.2f}°" if metric in JOINT_METRICS else f"{value:.2f}"
-
-
-def _best(values: list[float | None], metric: str) -> float | None:
-    vals = [v for v in values if v is not None]
-    if not vals:
-        return None
-    return max(vals) if HIGHER_IS_BETTER[metric] else min(vals)
-
 
 #: Fewer sequences per cell than this make a run a smoke test: its tables bold nothing.
 SMOKE_COUNT = 5
@@ -84,9 +65,9 @@ def markdown_table(
         for c in conditions:
             for split in ("train", "test"):
                 v = tables[row].get(c, {}).get(split)
-                best = _best([tables[r].get(c, {}).get(split) for r in learned], metric)
-                text = _fmt(v, metric)
-                tie = v is not None and best is not None and round(v, 2) == round(best, 2)
+                top = best([tables[r].get(c, {}).get(split) for r in learned], metric)
+                text = fmt(v, metric)
+                tie = v is not None and top is not None and round(v, 2) == round(top, 2)
                 if bold and tie and row in learned and len(learned) > 1:
                     text = f"**{text}**"
                 n = (counts or {}).get(row, {}).get(c, {}).get(split)
@@ -98,39 +79,11 @@ def markdown_table(
         lines.append(f"| {ROW_LABELS[row]} | " + " | ".join(cells) + " |")
     if ceiling:
         cells = [
-            _fmt(ceiling.get(c, {}).get(split), metric)
+            fmt(ceiling.get(c, {}).get(split), metric)
             for c in conditions
             for split in ("train", "test")
         ]
         lines.append(f"| {CEILING_LABEL} | " + " | ".join(cells) + " |")
-    return "\n".join(lines)
-
-
-def markdown_object_table(block: dict) -> str:
-    """Rows = models, columns = the metrics (camera_pan, test objects only)."""
-    tables = block["tables"]
-    rows = list(tables["jaccard"])
-    lines = [
-        "| Model | Jaccard | F@1% | F@2% | Joint error (8) | Joint error (6 moving) | grasps ok |",
-        "|---|---|---|---|---|---|---|",
-    ]
-    for row in rows:
-        n = block["counts"][row]
-        cells = [_fmt(tables[m][row], m) for m in METRICS]
-        lines.append(
-            f"| {ROW_LABELS[row]} | " + " | ".join(cells) + f" | {n['grasp_ok']}/{n['grasped']} |"
-        )
-    ceiling = block.get("fscore_ceiling")
-    if ceiling:
-        f1, f2 = (_fmt(ceiling[m], m) for m in FSCORE_METRICS)
-        lines.append(f"| {CEILING_LABEL} | 1.00 | {f1} | {f2} | — | — | |")
-    notes = [
-        f"- {ROW_LABELS[row]}: {'; '.join(reasons)}"
-        for row, reasons in block["grasp_failures"].items()
-        if reasons
-    ]
-    if notes:
-        lines += ["", "Grasps without a comparable result:", "", *notes]
     return "\n".join(lines)
 
 
@@ -156,13 +109,6 @@ def markdown_timings(results: dict) -> str:
     return "\n".join(lines)
 
 
-def _pm(block: dict | None, *, signed: bool = False) -> str:
-    if block is None:
-        return "—"
-    mean = f"{block['mean']:+.3f}" if signed else f"{block['mean']:.3f}"
-    return mean if block["se"] is None else f"{mean} ± {block['se']:.3f}"
-
-
 def markdown_precision(results: dict, split: str = "test") -> list[str]:
     """Table I's Jaccard with its standard errors over sequences, the paired difference of
     every row from Single-View, and how much each row's per-view curve rises."""
@@ -177,7 +123,7 @@ def markdown_precision(results: dict, split: str = "test") -> list[str]:
     def table(key: str, *, signed: bool) -> list[str]:
         lines = [header, rule]
         for row in rows:
-            cells = [_pm(precision[row][c].get(split, {}).get(key), signed=signed)
+            cells = [pm(precision[row][c].get(split, {}).get(key), signed=signed)
                      for c in conditions]
             if any(cell != "—" for cell in cells):
                 lines.append(f"| {ROW_LABELS[row]} | " + " | ".join(cells) + " |")
@@ -227,7 +173,7 @@ def _memory_table(precision: dict, conditions: list[str], split: str) -> list[st
              "|---|" + "---|" * len(conditions)]
     for key, label in (("vs_memory_off", "Jaccard"), ("rise_vs_memory_off", "Rise")):
         lines.append(f"| {label} | " + " | ".join(
-            _pm(cells.get(c, {}).get(split, {}).get(key), signed=True) for c in conditions) + " |")
+            pm(cells.get(c, {}).get(split, {}).get(key), signed=True) for c in conditions) + " |")
     return [*lines, ""]
 
 
@@ -255,118 +201,6 @@ def _markdown_grasp_success(results: dict) -> list[str]:
         markdown_table(table, GRASP_SUCCESS, counts=counts, bold=cfg["count"] >= SMOKE_COUNT),
         "",
     ]
-
-
-def markdown_sensor(results: dict) -> list[str]:
-    """Each condition with the sensor model on and off, the same test sequences, paired."""
-    block = results.get("sensor_noise")
-    if not block:
-        return []
-    rows = list(block["jaccard"])
-    conditions = [c for c in TABLE_ORDER if c in block["jaccard"][rows[0]]]
-    n = max(v for per in block["n"].values() for v in per.values())
-    lines = [
-        "## Jaccard with the sensor model on and off (test split, the same sequences)",
-        "",
-        f"Each cell: Jaccard ± SE over {n} sequences seen through completion.render.SensorModel, "
-        "then, in brackets, the mean paired difference from the same sequences rendered without "
-        "it (on by default for tabletop, off for the paper's five); the input is cleaned as "
-        "completion/depth.py says in both.",
-        "",
-        "| Model | " + " | ".join(CONDITION_LABELS[c] for c in conditions) + " |",
-        "|---|" + "---|" * len(conditions),
-    ]
-    for row in rows:
-        cells = []
-        for c in conditions:
-            d = block["difference"][row][c]
-            cells.append(_pm(block["jaccard"][row][c])
-                         + ("" if d is None else f" ({d['mean']:+.3f})"))
-        lines.append(f"| {ROW_LABELS[row]} | " + " | ".join(cells) + " |")
-    return [*lines, ""]
-
-
-def markdown_overhead(results: dict) -> list[str]:
-    """Overhead views of tabletop sequences: Jaccard and the share of the completion below the
-    table before any cut."""
-    block = results.get("tabletop_overhead")
-    if not block:
-        return []
-    lines = [
-        f"## Tabletop seen from above (elevation ≥ {block['min_elevation_deg']:.0f}°)",
-        "",
-        f"{block['views']} views of {block['sequences']} sequences (of {block['searched']} "
-        "tabletop test sequences searched). Below the table: the share of the completion's "
-        "voxels whose centre lies under the table top, before any cut; the target's own share "
-        f"(voxels the table top cuts) is {block['target_below_plane_share']:.3f}.",
-        "",
-        "| Model | Jaccard | Share below the table |",
-        "|---|---|---|",
-    ]
-    for row, j in block["jaccard"].items():
-        share = block["below_plane_share"][row]
-        lines.append(f"| {ROW_LABELS[row]} | {_fmt(j, 'jaccard')} | "
-                     f"{'—' if share is None else f'{share:.3f}'} |")
-    return [*lines, ""]
-
-
-BENCHMARK_LABELS = {
-    "true_mesh": "True mesh (planned on the truth)",
-    "mvp_1view": "MVP, 1 view",
-    "mvp_4views": "MVP, 4 views",
-    "single_view_1view": "Single-View, 1 view",
-    "registered_fusion_4views": "Registered fusion, 4 views (ref.)",
-}
-
-
-def markdown_benchmark(results: dict) -> list[str]:
-    """The grasp-success benchmark: held/tested with the 95 % interval and the failures."""
-    block = results.get("grasp_benchmark")
-    if not block:
-        return []
-    cfg = results["config"]
-    lines = [
-        "## Grasp success on a table (the benchmark; higher is better)",
-        "",
-        f"{len(results['grasp_benchmark_objects'])} held-out objects, each resting on a table in "
-        "a stable pose, seen by a depth camera with the sensor model at 45–90° of elevation "
-        "(one view, or a pan of 4); each row's top-1 grasp, planned with the table as an "
-        f"obstacle ({cfg['benchmark_candidates']} candidates), executed on the true object "
-        "standing on the table: guarded approach, close, lift 10 cm, shake. The interval is "
-        "Wilson's 95 % score interval. The true-mesh row is what a perfect completion would get.",
-        "",
-        "| Row | Held | Success | 95 % interval | Planned vs executed joints | Failures |",
-        "|---|---|---|---|---|---|",
-    ]
-    records = results["grasp_benchmark_objects"]
-    for row, cell in block.items():
-        failures = "; ".join(f"{n}× {reason}" for reason, n in cell["reasons"].items()) or "—"
-        rate = cell["held"] / cell["tested"] if cell["tested"] else None
-        gap = _joint_gap(records, row)
-        lines.append(f"| {BENCHMARK_LABELS[row]} | {cell['held']}/{cell['tested']} | "
-                     f"{_fmt(rate, GRASP_SUCCESS)} | {100 * cell['ci95'][0]:.0f}–"
-                     f"{100 * cell['ci95'][1]:.0f}% | {gap} | {failures} |")
-    lines += ["", "Planned vs executed joints: the median over objects of the mean absolute "
-              "difference between the finger joints the planner predicted and those the lift "
-              "test's hand ended with (8 joints, degrees).", ""]
-    failed = [r for r in records if not r["rows"].get("true_mesh", {"held": True})["held"]]
-    if failed:
-        lines += ["Failures of the true-mesh row (benchmark_failures.png shows them):", "",
-                  "| Object | Size (cm) | Mass (kg) | Grasp | Why |", "|---|---|---|---|---|"]
-        for r in failed:
-            o = r["rows"]["true_mesh"]
-            size = " × ".join(f"{100 * v:.0f}" for v in r["size_m"])
-            lines.append(f"| {r['id']} | {size} | {r['mass_kg']:.2f} | {o.get('kind', '—')} | "
-                         f"{o['reason']} |")
-        lines.append("")
-    return lines
-
-
-def _joint_gap(records: list[dict], row: str) -> str:
-    """The median over objects of the mean |planned − executed| finger joint (degrees)."""
-    gaps = [float(np.mean(np.abs(np.subtract(o["planned_joints_deg"], o["executed_joints_deg"]))))
-            for o in (r["rows"].get(row, {}) for r in records) if "executed_joints_deg" in o]
-    return f"{np.median(gaps):.1f}°" if gaps else "—"
 
 
 def how_to_read(results: dict) -> list[str]:
@@ -487,8 +321,7 @@ def markdown_report(results: dict) -> str:
             ]
         if metric == "jaccard":
             parts += markdown_precision(results)
-            parts += markdown_sensor(results)
-            parts += markdown_overhead(results)
+            parts += _section(results, "jaccard")
     pooled = results.get("pooled_joint_error_per_joint_deg") or {}
     if any(v is not None for v in pooled.values()):
         parts += [
@@ -505,7 +338,7 @@ def markdown_report(results: dict) -> str:
             "",
         ]
     parts += _markdown_grasp_success(results)
-    parts += markdown_benchmark(results)
+    parts += _section(results, "grasps")
     lines = []
     for row, per_cond in results["counts"].items():
         for c, per_split in per_cond.items():
@@ -524,19 +357,12 @@ def markdown_report(results: dict) -> str:
             *lines,
             "",
         ]
-    for key, title in (
-        ("named_objects", "Held-out named pybullet_data objects"),
-        ("objects_dir", "Objects from --objects"),
-    ):
-        block = results.get(key)
-        if block:
-            parts += [
-                f"## {title} (camera pan, test)",
-                "",
-                f"Objects: {', '.join(block['objects'])}",
-                "",
-                markdown_object_table(block),
-                "",
-            ]
+    parts += _section(results, "objects")
     parts += [markdown_timings(results), ""]
     return "\n".join(parts)
+
+
+def _section(results: dict, section: str) -> list[str]:
+    """The lines of every table of :data:`~grasp.evaluate.tables.TABLES` placed in ``section``."""
+    return [line for table in TABLES if table.section == section
+            for line in table.markdown(results)]

@@ -8,107 +8,28 @@ view of single-object sequences and lift-tests some of those grasps in pybullet.
 
 from __future__ import annotations
 
-import time
-import zlib
-from dataclasses import dataclass, field
-
 import numpy as np
 
 from completion import grid as G
 from completion.bullet import quiet_fds
-from completion.objects import object_ids
 from completion.scenes import (
-    NOISY_BY_DEFAULT,
     SINGLE_OBJECT_CONDITIONS,
     Sequence,
     object_meshes_in_camera,
 )
 from grasp.evaluate.config import (
-    BENCHMARK_TABLE,
     EVAL_SPLITS,
-    FOLDER_TABLE,
-    FUSION,
     MAIN_TABLE,
-    NAMED_OBJECTS_TABLE,
-    OBJECT_TABLE_CONDITION,
-    OVERHEAD_MIN_ELEVATION_DEG,
-    OVERHEAD_TABLE,
-    SENSOR_TABLE,
     TRUE_MESH,
     Job,
     Settings,
     figure_rows,
 )
+from grasp.evaluate.records import SequenceResult, StageClock, Timings, key_seed
 from grasp.evaluate.rows import load_models, make_rows
-
-STAGES: tuple[str, ...] = (
-    "generation",
-    "inference",
-    "completion_metrics",
-    "grasping",
-    "physics",
-    "benchmark",
-)
-
-
-@dataclass
-class Timings:
-    """Seconds per stage, summed over sequences: wall clock and this process's CPU time.
-
-    The CPU time does not grow when other jobs compete for the cores, so it is the measure to
-    size runs by (a run on N free cores takes about total CPU / N).
-    """
-
-    wall: dict[str, float] = field(default_factory=lambda: dict.fromkeys(STAGES, 0.0))
-    cpu: dict[str, float] = field(default_factory=lambda: dict.fromkeys(STAGES, 0.0))
-
-    def add(self, other: Timings) -> None:
-        for stage in STAGES:
-            self.wall[stage] += other.wall[stage]
-            self.cpu[stage] += other.cpu[stage]
-
-
-class _StageClock:
-    """Charges the wall and CPU time since the previous call to a stage of a :class:`Timings`."""
-
-    def __init__(self, timings: Timings) -> None:
-        self.timings = timings
-        self.wall, self.cpu = time.perf_counter(), time.process_time()
-
-    def charge(self, stage: str) -> None:
-        wall, cpu = time.perf_counter(), time.process_time()
-        self.timings.wall[stage] += wall - self.wall
-        self.timings.cpu[stage] += cpu - self.cpu
-        self.wall, self.cpu = wall, cpu
-
-
-@dataclass
-class SequenceResult:
-    job: Job
-    object_ids: list[str]
-    # row -> metric -> per-view list (jaccard, fscore_1, fscore_2; below_plane where the scene
-    # has a support plane: the share of the predicted voxels whose centre lies below it)
-    per_view: dict[str, dict[str, list[float]]]
-    # row -> JointError.as_dict() (only for grasped jobs)
-    grasps: dict[str, dict] = field(default_factory=dict)
-    timings: Timings = field(default_factory=Timings)
-    example: dict | None = None  # final-view grids for the figures
-    # row (and TRUE_MESH) -> lift test summary (only for physics jobs)
-    physics: dict[str, dict] = field(default_factory=dict)
-    # fscore_1 / fscore_2 -> per-view F-score of the 40³ target itself (a perfect completion);
-    # below_plane -> the target's share below the support plane (scenes with one)
-    ceiling: dict[str, list[float]] = field(default_factory=dict)
-    elevation_deg: list[float] = field(default_factory=list)  # the camera's, per view
-    # the benchmark's object record (grasp.evaluate.benchmark.object_record): "rows": row -> outcome
-    benchmark: dict = field(default_factory=dict)
-
+from grasp.evaluate.tables import BY_NAME, TABLES
 
 # ------------------------------------------------------------------------------ per-sequence work
-
-
-def key_seed(*parts: object) -> int:
-    """A stable 32-bit seed from the job's identity (same seed → same samples and grasps)."""
-    return zlib.crc32("/".join(map(str, parts)).encode())
 
 
 def truth_mesh_in_latest_camera(seq: Sequence):
@@ -150,60 +71,47 @@ class Evaluator:
         """row -> (L, 40, 40, 40) occupancy probabilities (bool for the fusion reference)."""
         return {name: row.probabilities(seq) for name, row in self.rows.items()}
 
-    def benchmark_rows(self) -> list[str]:
-        """The grasp-benchmark rows this run's models allow (the true mesh always)."""
-        from grasp.evaluate.benchmark import BENCHMARK_ROWS, ROW_SOURCES
-
-        def runs(source: str | None) -> bool:
-            if source == "fusion":
-                return FUSION in self.settings.rows and "mvp" in self.models
-            return source is None or source in self.models
-
-        return [r for r in BENCHMARK_ROWS if runs(ROW_SOURCES[r][0])]
-
-    def _benchmark(self, job: Job) -> SequenceResult:
-        from grasp.evaluate import benchmark as b
-
-        timings = Timings()
-        clock = _StageClock(timings)
-        object_id = job.pool[0]
-        scene = b.make_scene(object_id, job.index, self.settings.seed, self.renderer)
-        seed = key_seed(self.settings.seed, job.table, job.index)
-        with quiet_fds(1):
-            outcome = b.run_object(scene, self.models, self.benchmark_rows(),
-                                   candidates=self.settings.benchmark_candidates, seed=seed)
-        clock.charge("benchmark")
-        record = b.object_record(object_id, scene.mesh, outcome)
-        return SequenceResult(job, [object_id], {}, timings=timings, benchmark=record)
-
     def evaluate(self, job: Job) -> SequenceResult:
-        from completion.scenes import make_sequence
-        from grasp import metrics
+        """One job: its table's way (:data:`grasp.evaluate.tables.TABLES`), else the main
+        table's :meth:`sequence`."""
+        table = BY_NAME.get(job.table)
+        return self.sequence(job) if table is None else table.run(self, job)
 
-        if job.table == BENCHMARK_TABLE:
-            return self._benchmark(job)
-        s = self.settings
+    def sequence(self, job: Job, *, keep=None) -> SequenceResult:
+        """Generate the job's sequence, run every row over it and score it: each view (Jaccard,
+        F-score and its ceiling, the share below a table), the final view's grasps (and lift
+        tests), the figures' example. ``keep(seq)`` False: generated, not scored."""
         timings = Timings()
-        clock = _StageClock(timings)
-        seq = make_sequence(
-            job.condition,
-            job.split,
-            job.index,
-            s.seed,
-            views=s.views,
-            pool=list(job.pool) if job.pool is not None else None,
-            noise=job.noise,
-            renderer=self.renderer,
-        )
+        clock = StageClock(timings)
+        seq = self.generate(job)
         clock.charge("generation")
-        elevation = list(seq.meta["elevation_deg"])
-        if job.table == OVERHEAD_TABLE and max(elevation) < OVERHEAD_MIN_ELEVATION_DEG:
-            # searched, no view from above: nothing of it reaches the overhead table
-            return SequenceResult(job, list(seq.meta["object_ids"]), {}, timings=timings,
-                                  elevation_deg=elevation)
+        ids, elevation = list(seq.meta["object_ids"]), list(seq.meta["elevation_deg"])
+        if keep is not None and not keep(seq):
+            return SequenceResult(job, ids, {}, timings=timings, elevation_deg=elevation)
         probs = self.probabilities(seq)
         clock.charge("inference")
-        thresholds = {row: self.threshold(row, job.condition) for row in s.rows}
+        thresholds = {row: self.threshold(row, job.condition) for row in self.settings.rows}
+        per_view, ceiling = self._score_views(job, seq, probs, thresholds)
+        clock.charge("completion_metrics")
+        grasps, physics = self._grasps(job, seq, probs, thresholds, clock)
+        clock.charge("grasping")
+        example = self._example(seq, probs, thresholds, grasps) if job.example else None
+        return SequenceResult(job, ids, per_view, grasps, timings, example, physics, ceiling,
+                              elevation_deg=elevation)
+
+    def generate(self, job: Job) -> Sequence:
+        from completion.scenes import make_sequence
+
+        s = self.settings
+        return make_sequence(job.condition, job.split, job.index, s.seed, views=s.views,
+                             pool=list(job.pool) if job.pool is not None else None,
+                             noise=job.noise, renderer=self.renderer)
+
+    def _score_views(self, job: Job, seq: Sequence, probs: dict, thresholds: dict):
+        """row -> metric -> per view; and the target's own scores (the ceiling)."""
+        from grasp import metrics
+
+        s = self.settings
         per_view = {row: {"jaccard": [], "fscore_1": [], "fscore_2": []} for row in s.rows}
         ceiling: dict[str, list[float]] = {"fscore_1": [], "fscore_2": []}
         plane = "support_plane" in seq.meta
@@ -234,47 +142,50 @@ class Evaluator:
                 scores = metrics.fscore_grids(p, truth, transform, threshold=thr, seed=seed + 1)
                 per_view[row]["fscore_1"].append(scores[0].fscore)
                 per_view[row]["fscore_2"].append(scores[1].fscore)
-        clock.charge("completion_metrics")
+        return per_view, ceiling
+
+    def _grasps(self, job: Job, seq: Sequence, probs: dict, thresholds: dict, clock):
+        """row -> the final view's joint error; row -> lift test (physics jobs)."""
+        from grasp import metrics
+        from grasp.collision import CollisionScene
+
         grasps: dict[str, dict] = {}
         physics: dict[str, dict] = {}
-        if job.grasp and not job.light and job.condition in SINGLE_OBJECT_CONDITIONS:
-            from grasp.collision import CollisionScene
-
-            truth_mesh = truth_mesh_in_latest_camera(seq)
-            truth_scene = CollisionScene(truth_mesh)  # built once, reused
-            seed = key_seed(s.seed, job.table, job.condition, job.split, job.index, "grasp")
-            planned = {}
-            for row in s.rows:
-                mesh = metrics.mesh_or_none(
-                    probs[row][-1], seq.grid_to_camera[-1], threshold=thresholds[row]
-                )
-                result = metrics.grasp_joint_error(
-                    mesh, truth_scene, n_candidates=s.candidates, seed=seed
-                )
-                grasps[row] = result.as_dict()
-                planned[row] = result.planned
-            clock.charge("grasping")
-            if job.physics:
-                physics = self._lift_tests(job, truth_mesh, truth_scene, planned, seed)
-                clock.charge("physics")
+        if not job.grasp or job.light or job.condition not in SINGLE_OBJECT_CONDITIONS:
+            return grasps, physics
+        s = self.settings
+        truth_mesh = truth_mesh_in_latest_camera(seq)
+        truth_scene = CollisionScene(truth_mesh)  # built once, reused
+        seed = key_seed(s.seed, job.table, job.condition, job.split, job.index, "grasp")
+        planned = {}
+        for row in s.rows:
+            mesh = metrics.mesh_or_none(
+                probs[row][-1], seq.grid_to_camera[-1], threshold=thresholds[row]
+            )
+            result = metrics.grasp_joint_error(
+                mesh, truth_scene, n_candidates=s.candidates, seed=seed
+            )
+            grasps[row] = result.as_dict()
+            planned[row] = result.planned
         clock.charge("grasping")
-        example = None
-        if job.example:
+        if job.physics:
+            physics = self._lift_tests(job, truth_mesh, truth_scene, planned, seed)
+            clock.charge("physics")
+        return grasps, physics
 
-            example = {
-                "input": np.packbits(seq.inputs[-1]),
-                "target": np.packbits(seq.targets[-1]),
-                "grid_to_camera": seq.grid_to_camera[-1],
-                "camera_to_world": seq.camera_to_world[-1],
-                "object_to_world": seq.meta["object_to_world"][-1],
-                "rows": {r: np.packbits(probs[r][-1] >= thresholds[r]) for r in s.rows},
-                "probabilities": {r: probs[r][-1] for r in figure_rows(list(grasps))},
-                "thresholds": thresholds,
-            }
-        return SequenceResult(
-            job, list(seq.meta["object_ids"]), per_view, grasps, timings, example, physics, ceiling,
-            elevation_deg=elevation,
-        )
+    def _example(self, seq: Sequence, probs: dict, thresholds: dict, grasps: dict) -> dict:
+        """The final view's grids for the figures."""
+        rows = self.settings.rows
+        return {
+            "input": np.packbits(seq.inputs[-1]),
+            "target": np.packbits(seq.targets[-1]),
+            "grid_to_camera": seq.grid_to_camera[-1],
+            "camera_to_world": seq.camera_to_world[-1],
+            "object_to_world": seq.meta["object_to_world"][-1],
+            "rows": {r: np.packbits(probs[r][-1] >= thresholds[r]) for r in rows},
+            "probabilities": {r: probs[r][-1] for r in figure_rows(list(grasps))},
+            "thresholds": thresholds,
+        }
 
     def _lift_tests(self, job: Job, truth, truth_scene, planned: dict, plan_seed: int) -> dict:
         """row -> lift test of the grasp planned on that row's prediction; TRUE_MESH -> of a
@@ -325,7 +236,8 @@ def _run_job(job: Job) -> SequenceResult:
 
 
 def make_jobs(settings: Settings) -> list[Job]:
-    """Every sequence of the run, in a fixed order (results do not depend on the workers)."""
+    """Every sequence of the run, in a fixed order (results do not depend on the workers): the
+    main table's, then each table's of :data:`grasp.evaluate.tables.TABLES`."""
     jobs = []
     for condition in settings.conditions:
         for split in EVAL_SPLITS:
@@ -346,36 +258,8 @@ def make_jobs(settings: Settings) -> list[Job]:
             for index in range(settings.count, settings.grasp_count):
                 jobs.append(Job(MAIN_TABLE, condition, "test", index, grasp=True,
                                 grasp_only=True, physics=index < settings.physics_count))
-    for condition in settings.conditions:  # each condition with and without the sensor model,
-        for index in range(settings.sensor):  # the same sequences (the main table has one side)
-            for noise in (True, False):
-                if noise != (condition in NOISY_BY_DEFAULT) or index >= settings.count:
-                    jobs.append(Job(SENSOR_TABLE, condition, "test", index, noise=noise,
-                                    light=True))
-    if "tabletop" in settings.conditions:  # searched for overhead views
-        for index in range(settings.overhead):
-            jobs.append(Job(OVERHEAD_TABLE, "tabletop", "test", index, light=True))
-    if settings.benchmark:
-        from grasp.evaluate.benchmark import benchmark_objects
-
-        for index, object_id in enumerate(benchmark_objects(settings.benchmark, settings.seed)):
-            jobs.append(Job(BENCHMARK_TABLE, "tabletop", "test", index, pool=(object_id,)))
-    named = object_ids("test", sources=("named",))[: settings.named]
-    folder = [(NAMED_OBJECTS_TABLE, object_id) for object_id in named]
-    folder += [(FOLDER_TABLE, object_id) for object_id in settings.objects]
-    for table in (NAMED_OBJECTS_TABLE, FOLDER_TABLE):
-        for index, object_id in enumerate(o for t, o in folder if t == table):
-            jobs.append(
-                Job(
-                    table,
-                    OBJECT_TABLE_CONDITION,
-                    "test",
-                    index,
-                    pool=(object_id,),
-                    grasp=settings.grasp_count > 0,
-                    example=index == 0,
-                )
-            )
+    for table in TABLES:  # then every other table's, in the registry's order
+        jobs += table.jobs(settings)
     return jobs
 
 

@@ -1,0 +1,18 @@
+"""The evaluation's tables beyond the paper's main ones, each one module: which jobs it needs, how
+it scores one, what it puts in results.json and how it writes its part of results.md
+(:class:`~grasp.evaluate.tables.base.Table`). Adding a table: a module with a Table and one line
+in :data:`TABLES` (whose order is the order of the jobs and of results.md within a section)."""
+
+from grasp.evaluate.tables import benchmark, objects, overhead, sensor
+from grasp.evaluate.tables.base import Table
+
+TABLES: tuple[Table, ...] = (
+    sensor.TABLE,  # each condition with and without the sensor model, paired
+    overhead.TABLE,  # tabletop seen from above: the share of the completion below the table
+    benchmark.TABLE,  # the grasp-success benchmark: objects on a table, lift-tested
+    objects.NAMED,  # the held-out named pybullet_data objects
+    objects.FOLDER,  # every mesh of --objects DIR
+)
+BY_NAME: dict[str, Table] = {table.name: table for table in TABLES}
+
+__all__ = ["BY_NAME", "TABLES", "Table"]

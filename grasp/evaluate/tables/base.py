@@ -1,0 +1,36 @@
+"""What a table of the evaluation is: the jobs it needs, how it scores one, what it puts in
+results.json and how it writes its part of results.md."""
+
+from __future__ import annotations
+
+from typing import Any
+
+from grasp.evaluate.config import Job, Settings
+from grasp.evaluate.records import SequenceResult
+
+
+class Table:
+    """One table beyond the paper's main ones (:mod:`grasp.evaluate.aggregate` and
+    :mod:`grasp.evaluate.report` hold those). ``name`` is its jobs' ``Job.table``; ``section``
+    where results.md places it: ``"jaccard"`` (after Table I and its precision), ``"grasps"``
+    (after grasp success) or ``"objects"`` (before the timings). A table that scores its jobs
+    like the main table's keeps :meth:`run`; one that does not overrides it."""
+
+    name: str = ""
+    section: str = "objects"
+
+    def jobs(self, settings: Settings) -> list[Job]:
+        return []
+
+    def run(self, evaluator: Any, job: Job) -> SequenceResult:
+        """One job: by default the main table's scoring of a generated sequence
+        (:meth:`grasp.evaluate.runner.Evaluator.sequence`)."""
+        return evaluator.sequence(job)
+
+    def summarise(self, results: list[SequenceResult], settings: Settings) -> dict:
+        """The results.json entries this table owns (every key, None when it has nothing)."""
+        return {}
+
+    def markdown(self, results: dict) -> list[str]:
+        """Its lines of results.md (none when results.json has nothing of it)."""
+        return []
