@@ -78,10 +78,11 @@ from grasp.evaluate.config import (
     Job,
     Settings,
 )
+from grasp.evaluate.pool import run_jobs
 from grasp.evaluate.report import markdown_report
 from grasp.evaluate.results import build_results
 from grasp.evaluate.rows import registered_fusion
-from grasp.evaluate.runner import Evaluator, make_jobs, run_jobs
+from grasp.evaluate.runner import Evaluator, make_jobs
 
 __all__ = [
     "CONDITIONS",

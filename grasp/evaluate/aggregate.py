@@ -5,56 +5,23 @@ from __future__ import annotations
 import numpy as np
 
 from completion.scenes import CONDITIONS, SINGLE_OBJECT_CONDITIONS
-from grasp.evaluate.cells import mean_and_se, mean_or_none
+from grasp.evaluate.cells import mean_or_none
 from grasp.evaluate.config import (
     BENCHMARK_TABLE,
     EVAL_SPLITS,
     FSCORE_METRICS,
     GRASP_SUCCESS,
     MAIN_TABLE,
-    MEMORY_OFF,
     METRICS,
     TRUE_MESH,
     Settings,
 )
+from grasp.evaluate.precision import cell_precision
 from grasp.evaluate.records import SequenceResult
 from hands.barrett import JOINT_NAMES
 
 #: results.json key of each grasp metric inside a ``JointError.as_dict()``.
 _JOINT_KEYS = {"joint_error_deg": "error_deg", "joint_error_moving_deg": "error_moving_deg"}
-
-
-def _precision(seqs: list[SequenceResult], row: str, rows: tuple[str, ...]) -> dict:
-    """How far one Jaccard cell can be trusted, from its sequences (each a sample):
-    ``cell`` mean ± SE; ``vs_single_view`` the paired difference row − Single-View on the same
-    sequences (much tighter than two unpaired SEs); ``rise`` the mean of the last three views
-    minus the first three per sequence (> 0: the curve rises, as working memory should), and
-    ``rise_vs_single_view`` that rise minus Single-View's on the same sequence (what is left
-    once the views' own difficulty, which both see, is taken out). For MVP with its memory-off
-    row present, ``vs_memory_off`` and ``rise_vs_memory_off`` pair it with that row the same way:
-    what the memory alone adds."""
-
-    def rise(v: np.ndarray) -> float:
-        return v[-3:].mean() - v[:3].mean()
-
-    own = [np.asarray(r.per_view[row]["jaccard"]) for r in seqs]
-    long = bool(own) and min(v.size for v in own) >= 6
-    out = {"cell": mean_and_se(v.mean() for v in own),
-           "rise": mean_and_se(rise(v) for v in own) if long else None}
-
-    def versus(other: str, key: str) -> None:  # paired with another row on the same sequences
-        pairs = [(v, np.asarray(r.per_view[other]["jaccard"]))
-                 for v, r in zip(own, seqs, strict=True)]
-        out[f"vs_{key}"] = mean_and_se(v.mean() - w.mean() for v, w in pairs)
-        out[f"rise_vs_{key}"] = (mean_and_se(rise(v) - rise(w) for v, w in pairs)
-                                 if long else None)  # fmt: skip
-
-    out["vs_single_view"] = out["rise_vs_single_view"] = None
-    if row != "single_view" and "single_view" in rows:
-        versus("single_view", "single_view")
-    if row == "mvp" and MEMORY_OFF in rows:
-        versus(MEMORY_OFF, "memory_off")
-    return out
 
 
 def aggregate(results: list[SequenceResult], settings: Settings, table: str) -> dict:
@@ -63,7 +30,8 @@ def aggregate(results: list[SequenceResult], settings: Settings, table: str) -> 
     Also ``counts`` per cell (``sequences``; ``grasped``: sequences whose final view was grasped;
     ``grasp_ok``: of those, how many gave a comparable grasp, i.e. how many the joint-error cell
     averages), ``grasp_failures`` (the reasons of the others), ``per_view_jaccard`` (mean over
-    sequences per view index), ``jaccard_precision`` (standard errors, :func:`_precision`),
+    sequences per view index), ``jaccard_precision`` (standard errors,
+    :func:`grasp.evaluate.precision.cell_precision`),
     ``joint_error_per_joint_deg`` and, per condition and split, the F-score ``ceiling`` (the 40³
     target itself scored like a prediction).
     """
@@ -110,7 +78,7 @@ def aggregate(results: list[SequenceResult], settings: Settings, table: str) -> 
                 failures[row][c][s] = sorted({g["reason"] for g in grasped if g["reason"]})
                 views = [r.per_view[row]["jaccard"] for r in seqs]
                 per_view[row][c][s] = np.round(np.mean(views, axis=0), 4).tolist() if seqs else []
-                precision[row][c][s] = _precision(seqs, row, settings.rows)
+                precision[row][c][s] = cell_precision(seqs, row, settings.rows)
     success_counts: dict = {}
     for row in (*settings.rows, TRUE_MESH):
         tables[GRASP_SUCCESS][row] = {c: {} for c in conditions}

@@ -15,9 +15,10 @@ from completion.prior import PRIOR_FILE
 from completion.scenes import CONDITIONS, VIEWS
 from grasp.evaluate.config import PRESETS, PRIOR, ROWS, Preset, Settings, checkpoints_needed
 from grasp.evaluate.figures import write_figures
+from grasp.evaluate.pool import run_jobs
 from grasp.evaluate.report import markdown_report
 from grasp.evaluate.results import build_results
-from grasp.evaluate.runner import make_jobs, run_jobs
+from grasp.evaluate.runner import make_jobs
 
 
 def _preset_help(field: str) -> str:

@@ -6,7 +6,7 @@ from __future__ import annotations
 from collections.abc import Iterable
 
 from completion.scenes import SINGLE_OBJECT_CONDITIONS
-from grasp.evaluate.cells import CEILING_LABEL, best, fmt, pm
+from grasp.evaluate.cells import CEILING_LABEL, best, fmt
 from grasp.evaluate.config import (
     CONDITION_LABELS,
     FSCORE_METRICS,
@@ -22,6 +22,8 @@ from grasp.evaluate.config import (
     TABLE_ORDER,
     TRUE_MESH,
 )
+from grasp.evaluate.precision import markdown_precision
+from grasp.evaluate.records import markdown_timings
 from grasp.evaluate.tables import TABLES
 from hands.barrett import JOINT_NAMES
 
@@ -85,96 +87,6 @@ def markdown_table(
         ]
         lines.append(f"| {CEILING_LABEL} | " + " | ".join(cells) + " |")
     return "\n".join(lines)
-
-
-def markdown_timings(results: dict) -> str:
-    """Per-stage seconds (wall and CPU, summed over sequences) and the run's wall times."""
-    t = results["timings_s"]
-    wall, cpu = t["stages_wall_summed_over_sequences"], t["stages_cpu_summed_over_sequences"]
-    workers = results["config"]["workers"]
-    one, many = ("Ray actor", "Ray actors") if results["config"].get("ray") else (
-        "worker process", "worker processes")
-    lines = [
-        f"## Timings (seconds; {workers} {many if workers > 1 else one})",
-        "",
-        "| stage | wall, summed over sequences | CPU, summed over sequences |",
-        "|---|---|---|",
-        *[f"| {k} | {wall[k]:.1f} | {cpu[k]:.1f} |" for k in wall],
-        f"| all stages | {sum(wall.values()):.1f} | {sum(cpu.values()):.1f} |",
-        "",
-        "| run | wall |",
-        "|---|---|",
-        *[f"| {k} | {v:.1f} |" for k, v in t["wall"].items()],
-    ]
-    return "\n".join(lines)
-
-
-def markdown_precision(results: dict, split: str = "test") -> list[str]:
-    """Table I's Jaccard with its standard errors over sequences, the paired difference of
-    every row from Single-View, and how much each row's per-view curve rises."""
-    precision = results.get("jaccard_precision") or {}
-    rows = [r for r in precision if any(precision[r][c].get(split) for c in precision[r])]
-    if not rows:
-        return []
-    conditions = [c for c in TABLE_ORDER if c in precision[rows[0]]]
-    header = "| Model | " + " | ".join(CONDITION_LABELS[c] for c in conditions) + " |"
-    rule = "|---|" + "---|" * len(conditions)
-
-    def table(key: str, *, signed: bool) -> list[str]:
-        lines = [header, rule]
-        for row in rows:
-            cells = [pm(precision[row][c].get(split, {}).get(key), signed=signed)
-                     for c in conditions]
-            if any(cell != "—" for cell in cells):
-                lines.append(f"| {ROW_LABELS[row]} | " + " | ".join(cells) + " |")
-        return lines
-
-    n = results["config"]["count"]
-    return [
-        f"## How precise Table I is ({split} split, mean ± standard error over sequences)",
-        "",
-        f"Each cell of Table I averages {n} sequences, so it carries sampling noise: the standard "
-        "error is the sample SD of the per-sequence Jaccard over √n (about ±2 SE is a 95% "
-        "interval). Comparisons on the same sequences are tighter: the second table gives each "
-        "row minus Single-View, paired sequence by sequence; the third the mean of the last "
-        "three views minus the first three, per sequence (above 0: the per-view curve rises, as "
-        "working memory should make it); the fourth that rise minus Single-View's on the same "
-        "sequence, which takes out how hard the views themselves are. `jaccard_precision` in "
-        "results.json has both splits.",
-        "",
-        "Jaccard:",
-        "",
-        *table("cell", signed=False),
-        "",
-        "Minus Single-View (paired):",
-        "",
-        *table("vs_single_view", signed=True),
-        "",
-        "Last three views minus the first three:",
-        "",
-        *table("rise", signed=True),
-        "",
-        "That rise minus Single-View's (paired):",
-        "",
-        *table("rise_vs_single_view", signed=True),
-        "",
-        *_memory_table(precision, conditions, split),
-    ]
-
-
-def _memory_table(precision: dict, conditions: list[str], split: str) -> list[str]:
-    """MVP minus its memory-off row, paired: the Jaccard and the rise the memory alone adds."""
-    cells = precision.get("mvp", {})
-    if not any(cells.get(c, {}).get(split, {}).get("vs_memory_off") for c in conditions):
-        return []
-    lines = ["What the memory adds: MVP minus MVP with its memory off, on the same sequences "
-             "(paired):", "",
-             "| | " + " | ".join(CONDITION_LABELS[c] for c in conditions) + " |",
-             "|---|" + "---|" * len(conditions)]
-    for key, label in (("vs_memory_off", "Jaccard"), ("rise_vs_memory_off", "Rise")):
-        lines.append(f"| {label} | " + " | ".join(
-            pm(cells.get(c, {}).get(split, {}).get(key), signed=True) for c in conditions) + " |")
-    return [*lines, ""]
 
 
 def _markdown_grasp_success(results: dict) -> list[str]:
