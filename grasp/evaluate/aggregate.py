@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
 from completion.scenes import CONDITIONS, SINGLE_OBJECT_CONDITIONS
@@ -24,91 +26,107 @@ from hands.barrett import JOINT_NAMES
 _JOINT_KEYS = {"joint_error_deg": "error_deg", "joint_error_moving_deg": "error_moving_deg"}
 
 
+@dataclass(frozen=True)
+class Cell:
+    """One row on one condition and split of a table: every figure results.json gives it."""
+
+    row: str
+    condition: str
+    split: str
+    values: dict[str, float | None]  # metric -> the cell of Tables I–III (None: n/a or none)
+    counts: dict[str, int]  # sequences; grasped; grasp_ok (how many the joint error averages)
+    failures: list[str]  # why the other grasps gave nothing comparable
+    per_view_jaccard: list[float]  # mean over the cell's sequences per view index
+    precision: dict  # grasp.evaluate.precision.cell_precision
+    per_joint: dict[str, float] | None  # joint -> mean |Δθ| of the comparable grasps
+
+
+@dataclass(frozen=True)
+class SuccessCell:
+    """One row's lift tests on one condition and split (the true-mesh row included)."""
+
+    row: str
+    condition: str
+    split: str
+    rate: float | None  # held / tested (None: n/a or nothing tested)
+    counts: dict[str, int]  # tested, held
+
+
 def aggregate(results: list[SequenceResult], settings: Settings, table: str) -> dict:
     """Tables for one set of sequences: metric -> row -> condition -> split -> value (or None).
 
-    Also ``counts`` per cell (``sequences``; ``grasped``: sequences whose final view was grasped;
-    ``grasp_ok``: of those, how many gave a comparable grasp, i.e. how many the joint-error cell
-    averages), ``grasp_failures`` (the reasons of the others), ``per_view_jaccard`` (mean over
-    sequences per view index), ``jaccard_precision`` (standard errors,
-    :func:`grasp.evaluate.precision.cell_precision`),
-    ``joint_error_per_joint_deg`` and, per condition and split, the F-score ``ceiling`` (the 40³
-    target itself scored like a prediction).
+    The cells are computed as records (:class:`Cell`, :class:`SuccessCell`), one per row,
+    condition and split, and grouped into results.json's layout at the end: ``tables``,
+    ``counts``, ``grasp_failures``, ``per_view_jaccard``, ``jaccard_precision``,
+    ``joint_error_per_joint_deg``, ``grasp_success_counts`` and, per condition and split, the
+    F-score ``ceiling`` (the 40³ target itself scored like a prediction).
     """
     mine = [r for r in results if r.job.table == table]
     conditions = sorted({r.job.condition for r in mine}, key=CONDITIONS.index)
     splits = [s for s in EVAL_SPLITS if any(r.job.split == s for r in mine)]
 
-    def cell(c: str, s: str, grasped: bool = False) -> list[SequenceResult]:
+    def sequences(c: str, s: str, grasped: bool = False) -> list[SequenceResult]:
         """The cell's completion sequences (``grasped``: and its grasp-only ones)."""
         return [r for r in mine if r.job.condition == c and r.job.split == s
                 and (grasped or not r.job.grasp_only)]
 
-    tables: dict = {m: {} for m in (*METRICS, GRASP_SUCCESS)}
-    counts: dict = {}
-    per_view: dict = {}
-    failures: dict = {}
-    per_joint: dict = {}
-    precision: dict = {}
-    for row in settings.rows:
-        for m in METRICS:
-            tables[m][row] = {c: {} for c in conditions}
-        counts[row] = {c: {} for c in conditions}
-        per_view[row] = {c: {} for c in conditions}
-        failures[row] = {c: {} for c in conditions}
-        per_joint[row] = {c: {} for c in conditions}
-        precision[row] = {c: {} for c in conditions}
-        for c in conditions:
-            applies = c in SINGLE_OBJECT_CONDITIONS
-            for s in splits:
-                seqs = cell(c, s)
-                for m in ("jaccard", *FSCORE_METRICS):
-                    tables[m][row][c][s] = mean_or_none(np.mean(r.per_view[row][m]) for r in seqs)
-                grasped = [r.grasps[row] for r in cell(c, s, True) if row in r.grasps]
-                ok = [g for g in grasped if g["error_deg"] is not None]
-                for m, key in _JOINT_KEYS.items():
-                    tables[m][row][c][s] = mean_or_none(g[key] for g in ok) if applies else None
-                joints = [g["per_joint_deg"] for g in ok]
-                per_joint[row][c][s] = _by_joint(np.mean(joints, axis=0)) if joints else None
-                counts[row][c][s] = {
-                    "sequences": len(seqs),
-                    "grasped": len(grasped),
-                    "grasp_ok": len(ok),
-                }
-                failures[row][c][s] = sorted({g["reason"] for g in grasped if g["reason"]})
-                views = [r.per_view[row]["jaccard"] for r in seqs]
-                per_view[row][c][s] = np.round(np.mean(views, axis=0), 4).tolist() if seqs else []
-                precision[row][c][s] = cell_precision(seqs, row, settings.rows)
-    success_counts: dict = {}
-    for row in (*settings.rows, TRUE_MESH):
-        tables[GRASP_SUCCESS][row] = {c: {} for c in conditions}
-        success_counts[row] = {c: {} for c in conditions}
-        for c in conditions:
-            for s in splits:
-                tested = [r.physics[row] for r in cell(c, s, True) if row in r.physics]
-                held = sum(t["success"] for t in tested)
-                applies = c in SINGLE_OBJECT_CONDITIONS and tested
-                tables[GRASP_SUCCESS][row][c][s] = round(held / len(tested), 4) if applies else None
-                success_counts[row][c][s] = {"tested": len(tested), "held": held}
-    ceiling = {
-        c: {
-            s: {m: mean_or_none(np.mean(r.ceiling[m]) for r in cell(c, s)) for m in FSCORE_METRICS}
-            for s in splits
-        }
-        for c in conditions
-    }
+    cells = [_cell(row, c, s, sequences(c, s), sequences(c, s, True), settings.rows)
+             for row in settings.rows for c in conditions for s in splits]
+    success = [_success_cell(row, c, s, sequences(c, s, True))
+               for row in (*settings.rows, TRUE_MESH) for c in conditions for s in splits]
+
+    def nest(records, value, rows) -> dict:  # row -> condition -> split -> value(record)
+        out = {row: {c: {} for c in conditions} for row in rows}
+        for r in records:
+            out[r.row][r.condition][r.split] = value(r)
+        return out
+
+    rows, with_truth = settings.rows, (*settings.rows, TRUE_MESH)
+    tables = {m: nest(cells, lambda r, m=m: r.values[m], rows) for m in METRICS}
+    tables[GRASP_SUCCESS] = nest(success, lambda r: r.rate, with_truth)
+    ceiling = {c: {s: {m: mean_or_none(np.mean(r.ceiling[m]) for r in sequences(c, s))
+                       for m in FSCORE_METRICS} for s in splits} for c in conditions}
     return {
         "tables": tables,
-        "counts": counts,
-        "grasp_success_counts": success_counts,
-        "per_view_jaccard": per_view,
-        "jaccard_precision": precision,
-        "grasp_failures": failures,
-        "joint_error_per_joint_deg": per_joint,
+        "counts": nest(cells, lambda r: r.counts, rows),
+        "grasp_success_counts": nest(success, lambda r: r.counts, with_truth),
+        "per_view_jaccard": nest(cells, lambda r: r.per_view_jaccard, rows),
+        "jaccard_precision": nest(cells, lambda r: r.precision, rows),
+        "grasp_failures": nest(cells, lambda r: r.failures, rows),
+        "joint_error_per_joint_deg": nest(cells, lambda r: r.per_joint, rows),
         "ceiling": ceiling,
         "conditions": conditions,
         "splits": splits,
     }
+
+
+def _cell(row: str, c: str, s: str, seqs: list[SequenceResult],
+          with_grasp_only: list[SequenceResult], rows: tuple[str, ...]) -> Cell:
+    applies = c in SINGLE_OBJECT_CONDITIONS
+    values = {m: mean_or_none(np.mean(r.per_view[row][m]) for r in seqs)
+              for m in ("jaccard", *FSCORE_METRICS)}
+    grasped = [r.grasps[row] for r in with_grasp_only if row in r.grasps]
+    ok = [g for g in grasped if g["error_deg"] is not None]
+    for m, key in _JOINT_KEYS.items():
+        values[m] = mean_or_none(g[key] for g in ok) if applies else None
+    joints = [g["per_joint_deg"] for g in ok]
+    views = [r.per_view[row]["jaccard"] for r in seqs]
+    return Cell(
+        row, c, s, values,
+        counts={"sequences": len(seqs), "grasped": len(grasped), "grasp_ok": len(ok)},
+        failures=sorted({g["reason"] for g in grasped if g["reason"]}),
+        per_view_jaccard=np.round(np.mean(views, axis=0), 4).tolist() if seqs else [],
+        precision=cell_precision(seqs, row, rows),
+        per_joint=_by_joint(np.mean(joints, axis=0)) if joints else None,
+    )
+
+
+def _success_cell(row: str, c: str, s: str, seqs: list[SequenceResult]) -> SuccessCell:
+    tested = [r.physics[row] for r in seqs if row in r.physics]
+    held = sum(t["success"] for t in tested)
+    applies = c in SINGLE_OBJECT_CONDITIONS and tested
+    return SuccessCell(row, c, s, round(held / len(tested), 4) if applies else None,
+                       {"tested": len(tested), "held": held})
 
 
 def fscore_ceiling(ceiling: dict) -> dict:
