@@ -54,9 +54,10 @@ sequence's identity, and every worker runs torch on one thread, so the numbers d
 The package: :mod:`~grasp.evaluate.config` (rows, metrics, presets, settings, the paper's
 numbers), :mod:`~grasp.evaluate.rows` (each row an object that turns views into probabilities),
 :mod:`~grasp.evaluate.records` (a sequence's result, stage timings),
-:mod:`~grasp.evaluate.runner` (one sequence; the process pool), :mod:`~grasp.evaluate.tables`
-(every table beyond the main ones, one module each: sensor, overhead, benchmark, objects),
-:mod:`~grasp.evaluate.aggregate` (the main tables' cells and counts),
+:mod:`~grasp.evaluate.runner` (one sequence), :mod:`~grasp.evaluate.pool` (the workers),
+:mod:`~grasp.evaluate.tables` (every table, one module each: main, sensor, overhead, benchmark,
+objects), :mod:`~grasp.evaluate.aggregate` (the main tables' cells and counts),
+:mod:`~grasp.evaluate.precision` (Table I's standard errors),
 :mod:`~grasp.evaluate.results` (all of results.json), :mod:`~grasp.evaluate.cells` (means and
 their Markdown), :mod:`~grasp.evaluate.report` (results.md), :mod:`~grasp.evaluate.figures` (the
 PNGs), :mod:`~grasp.evaluate.benchmark` (the benchmark's scenes and lift tests) and

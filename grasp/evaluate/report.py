@@ -3,116 +3,9 @@ them."""
 
 from __future__ import annotations
 
-from collections.abc import Iterable
-
-from completion.scenes import SINGLE_OBJECT_CONDITIONS
-from grasp.evaluate.cells import CEILING_LABEL, best, fmt
-from grasp.evaluate.config import (
-    CONDITION_LABELS,
-    FSCORE_METRICS,
-    GRASP_SUCCESS,
-    GRASP_SUCCESS_TITLE,
-    JOINT_METRICS,
-    METRIC_TITLES,
-    METRICS,
-    PAPER_ORDER,
-    PAPER_TABLES,
-    REFERENCE_ROWS,
-    ROW_LABELS,
-    TABLE_ORDER,
-    TRUE_MESH,
-)
-from grasp.evaluate.precision import markdown_precision
 from grasp.evaluate.records import markdown_timings
 from grasp.evaluate.tables import TABLES
-from hands.barrett import JOINT_NAMES
-
-#: Fewer sequences per cell than this make a run a smoke test: its tables bold nothing.
-SMOKE_COUNT = 5
-
-
-def markdown_table(
-    tables: dict,
-    metric: str,
-    *,
-    conditions: Iterable[str] | None = None,
-    counts: dict | None = None,
-    ceiling: dict | None = None,
-    bold: bool = True,
-) -> str:
-    """One of the paper's tables: rows = models, columns = condition × (train, test); ``bold``:
-    the best learned model of each column in bold.
-
-    tables : row -> condition -> split -> value (``results["tables"][metric]``, or
-    :data:`PAPER_TABLES` ``[metric]``); conditions default to those of the first row.
-    counts : results.json's ``counts`` (joint error) or ``grasp_success_counts`` (grasp success):
-    each cell then says how many sequences it averages, e.g. "4.21° (9/10)": 9 comparable grasps
-    of 10 grasped sequences. ceiling : condition -> split -> value, printed as a last row.
-    """
-    rows = list(tables)
-    if conditions is None:
-        conditions = next(iter(tables.values()), {})
-    conditions = [c for c in TABLE_ORDER if c in set(conditions)]
-    if metric in (*JOINT_METRICS, GRASP_SUCCESS):
-        conditions = [c for c in conditions if c in SINGLE_OBJECT_CONDITIONS]
-    header = (
-        "| Model | "
-        + " | ".join(f"{CONDITION_LABELS[c]} {s}" for c in conditions for s in ("train", "test"))
-        + " |"
-    )
-    lines = [header, "|" + "---|" * (1 + 2 * len(conditions))]
-    learned = [r for r in rows if r not in (*REFERENCE_ROWS, TRUE_MESH)]
-    for row in rows:
-        cells = []
-        for c in conditions:
-            for split in ("train", "test"):
-                v = tables[row].get(c, {}).get(split)
-                top = best([tables[r].get(c, {}).get(split) for r in learned], metric)
-                text = fmt(v, metric)
-                tie = v is not None and top is not None and round(v, 2) == round(top, 2)
-                if bold and tie and row in learned and len(learned) > 1:
-                    text = f"**{text}**"
-                n = (counts or {}).get(row, {}).get(c, {}).get(split)
-                if n and metric == GRASP_SUCCESS and n["tested"]:
-                    text += f" ({n['held']}/{n['tested']})"
-                elif n and metric in JOINT_METRICS and n["grasped"]:
-                    text += f" ({n['grasp_ok']}/{n['grasped']})"
-                cells.append(text)
-        lines.append(f"| {ROW_LABELS[row]} | " + " | ".join(cells) + " |")
-    if ceiling:
-        cells = [
-            fmt(ceiling.get(c, {}).get(split), metric)
-            for c in conditions
-            for split in ("train", "test")
-        ]
-        lines.append(f"| {CEILING_LABEL} | " + " | ".join(cells) + " |")
-    return "\n".join(lines)
-
-
-def _markdown_grasp_success(results: dict) -> list[str]:
-    """The lift-test table with its counts (empty when nothing was lift-tested)."""
-    table = results["tables"].get(GRASP_SUCCESS)
-    counts = results.get("grasp_success_counts") or {}
-    if not table or not any(
-        n["tested"] for per_c in counts.values() for per_s in per_c.values() for n in per_s.values()
-    ):
-        return []
-    cfg = results["config"]
-    return [
-        f"## {GRASP_SUCCESS_TITLE}",
-        "",
-        f"The first {cfg['physics_count']} grasped test sequences per condition (the train "
-        "split is not lift-tested); each cell gives held/tested. Every row's grasp is executed "
-        "the same way on the true object: from the pre-grasp pose the hand moves in until it "
-        "touches (guarded move), closes, lifts "
-        "10 cm and shakes. Model rows use the grasp planned on their prediction; the true-mesh "
-        "row uses the grasp planned on the true mesh: what a perfect completion would get. It "
-        "is an upper bound only as far as the planner's ranking predicts the lift test; where "
-        "a model row beats it, the ranking preferred a grasp that does not hold.",
-        "",
-        markdown_table(table, GRASP_SUCCESS, counts=counts, bold=cfg["count"] >= SMOKE_COUNT),
-        "",
-    ]
+from grasp.evaluate.tables.main import MAIN, SMOKE_COUNT
 
 
 def how_to_read(results: dict) -> list[str]:
@@ -180,15 +73,10 @@ def how_to_read(results: dict) -> list[str]:
 
 
 def markdown_report(results: dict) -> str:
+    """results.md: the run's header, how to read it, then the main tables part by part, each part
+    followed by the registered tables placed after it (:data:`grasp.evaluate.tables.TABLES`), and
+    the timings."""
     cfg = results["config"]
-    # metric -> condition -> split -> F-score of the 40³ target itself
-    ceiling = {
-        m: {
-            c: {s: v[m] for s, v in block["by_split"].items()}
-            for c, block in (results.get("fscore_ceiling") or {}).items()
-        }
-        for m in FSCORE_METRICS
-    }
     smoke = cfg["count"] < SMOKE_COUNT
     bolding = (
         f"**A smoke test**: fewer than {SMOKE_COUNT} sequences per cell, so the figures say only "
@@ -207,74 +95,14 @@ def markdown_report(results: dict) -> str:
         "",
         *how_to_read(results),
     ]
-    for metric in METRICS:
-        ours = results["tables"][metric]
-        counts = results["counts"] if metric in JOINT_METRICS else None
-        parts += [
-            f"## {METRIC_TITLES[metric]}",
-            "",
-            markdown_table(ours, metric, counts=counts, ceiling=ceiling.get(metric),
-                           bold=not smoke),
-            "",
-        ]
-        paper_metric = "joint_error_deg" if metric == "joint_error_moving_deg" else metric
-        if paper_metric in PAPER_TABLES:
-            conditions = [c for c in next(iter(ours.values()), {}) if c in PAPER_ORDER]
-            note = (
-                " (8-joint means; × 4/3 gives the 6-joint scale)"
-                if metric == "joint_error_moving_deg"
-                else ""
-            )
-            parts += [
-                f"The paper's numbers for the same cells (— = N/A in the paper){note}:",
-                "",
-                markdown_table(PAPER_TABLES[paper_metric], paper_metric, conditions=conditions),
-                "",
-            ]
-        if metric == "jaccard":
-            parts += markdown_precision(results)
-            parts += _section(results, "jaccard")
-    pooled = results.get("pooled_joint_error_per_joint_deg") or {}
-    if any(v is not None for v in pooled.values()):
-        parts += [
-            "Joint error per joint, degrees (every grasped sequence of the table above, pooled):",
-            "",
-            "| Model | " + " | ".join(JOINT_NAMES) + " |",
-            "|---|" + "---|" * len(JOINT_NAMES),
-            *[
-                f"| {ROW_LABELS[row]} | "
-                + " | ".join("—" if v is None else f"{v[j]:.2f}" for j in JOINT_NAMES)
-                + " |"
-                for row, v in pooled.items()
-            ],
-            "",
-        ]
-    parts += _markdown_grasp_success(results)
-    parts += _section(results, "grasps")
-    lines = []
-    for row, per_cond in results["counts"].items():
-        for c, per_split in per_cond.items():
-            for s, n in per_split.items():
-                if c in SINGLE_OBJECT_CONDITIONS and n["grasped"] and n["grasp_ok"] < n["grasped"]:
-                    reasons = "; ".join(results["grasp_failures"][row][c][s])
-                    lines.append(
-                        f"- {ROW_LABELS[row]}, {CONDITION_LABELS[c]} {s}: "
-                        f"{n['grasped'] - n['grasp_ok']} of {n['grasped']} without a "
-                        f"comparable grasp ({reasons})"
-                    )
-    if lines:
-        parts += [
-            "Grasps left out of the joint-error means (no prediction surface or no grasp found):",
-            "",
-            *lines,
-            "",
-        ]
-    parts += _section(results, "objects")
+    for lines, section in MAIN.parts(results, bold=not smoke):
+        parts += lines
+        parts += _section(results, section)
     parts += [markdown_timings(results), ""]
     return "\n".join(parts)
 
 
 def _section(results: dict, section: str) -> list[str]:
     """The lines of every table of :data:`~grasp.evaluate.tables.TABLES` placed in ``section``."""
-    return [line for table in TABLES if table.section == section
+    return [line for table in TABLES if table.section == section and table is not MAIN
             for line in table.markdown(results)]

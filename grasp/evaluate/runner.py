@@ -18,8 +18,6 @@ from completion.scenes import (
     object_meshes_in_camera,
 )
 from grasp.evaluate.config import (
-    EVAL_SPLITS,
-    MAIN_TABLE,
     TRUE_MESH,
     Job,
     Settings,
@@ -72,10 +70,8 @@ class Evaluator:
         return {name: row.probabilities(seq) for name, row in self.rows.items()}
 
     def evaluate(self, job: Job) -> SequenceResult:
-        """One job: its table's way (:data:`grasp.evaluate.tables.TABLES`), else the main
-        table's :meth:`sequence`."""
-        table = BY_NAME.get(job.table)
-        return self.sequence(job) if table is None else table.run(self, job)
+        """One job, its table's way (:data:`grasp.evaluate.tables.TABLES`)."""
+        return BY_NAME[job.table].run(self, job)
 
     def sequence(self, job: Job, *, keep=None) -> SequenceResult:
         """Generate the job's sequence, run every row over it and score it: each view (Jaccard,
@@ -220,28 +216,6 @@ class Evaluator:
 
 
 def make_jobs(settings: Settings) -> list[Job]:
-    """Every sequence of the run, in a fixed order (results do not depend on the workers): the
-    main table's, then each table's of :data:`grasp.evaluate.tables.TABLES`."""
-    jobs = []
-    for condition in settings.conditions:
-        for split in EVAL_SPLITS:
-            for index in range(settings.count):
-                jobs.append(
-                    Job(
-                        MAIN_TABLE,
-                        condition,
-                        split,
-                        index,
-                        grasp=index < settings.grasp_count,
-                        example=split == "test" and index == 0,
-                        physics=split == "test"
-                        and index < min(settings.grasp_count, settings.physics_count),
-                    )
-                )
-        if condition in SINGLE_OBJECT_CONDITIONS:  # more grasps for the test's joint error
-            for index in range(settings.count, settings.grasp_count):
-                jobs.append(Job(MAIN_TABLE, condition, "test", index, grasp=True,
-                                grasp_only=True, physics=index < settings.physics_count))
-    for table in TABLES:  # then every other table's, in the registry's order
-        jobs += table.jobs(settings)
-    return jobs
+    """Every sequence of the run, in a fixed order (results do not depend on the workers): each
+    table's of :data:`grasp.evaluate.tables.TABLES` in turn."""
+    return [job for table in TABLES for job in table.jobs(settings)]

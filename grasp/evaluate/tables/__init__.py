@@ -1,12 +1,13 @@
-"""The evaluation's tables beyond the paper's main ones, each one module: which jobs it needs, how
-it scores one, what it puts in results.json and how it writes its part of results.md
-(:class:`~grasp.evaluate.tables.base.Table`). Adding a table: a module with a Table and one line
-in :data:`TABLES` (whose order is the order of the jobs and of results.md within a section)."""
+"""The evaluation's tables, each one module: which jobs it needs, how it scores one, what it puts
+in results.json and how it writes its part of results.md (:class:`~grasp.evaluate.tables.base.
+Table`). Adding a table: a module with a Table and one line in :data:`TABLES` (whose order is the
+order of the jobs, and of results.md within a section of the main table's report)."""
 
-from grasp.evaluate.tables import benchmark, objects, overhead, sensor
+from grasp.evaluate.tables import benchmark, main, objects, overhead, sensor
 from grasp.evaluate.tables.base import Table
 
 TABLES: tuple[Table, ...] = (
+    main.MAIN,  # the paper's Tables I–III, their precision, grasp success
     sensor.TABLE,  # each condition with and without the sensor model, paired
     overhead.TABLE,  # tabletop seen from above: the share of the completion below the table
     benchmark.TABLE,  # the grasp-success benchmark: objects on a table, lift-tested

@@ -10,11 +10,11 @@ from grasp.evaluate.records import SequenceResult
 
 
 class Table:
-    """One table beyond the paper's main ones (:mod:`grasp.evaluate.aggregate` and
-    :mod:`grasp.evaluate.report` hold those). ``name`` is its jobs' ``Job.table``; ``section``
-    where results.md places it: ``"jaccard"`` (after Table I and its precision), ``"grasps"``
-    (after grasp success) or ``"objects"`` (before the timings). A table that scores its jobs
-    like the main table's keeps :meth:`run`; one that does not overrides it."""
+    """One table of the evaluation. ``name`` is its jobs' ``Job.table``; ``section`` where
+    results.md places it, after a part of the main table's (:mod:`grasp.evaluate.tables.main`):
+    ``"jaccard"`` (Table I and its precision), ``"grasps"`` (grasp success) or ``"objects"``
+    (the grasps left out), before the timings. A table that scores its jobs like the main
+    table's keeps :meth:`run`; one that does not overrides it."""
 
     name: str = ""
     section: str = "objects"
