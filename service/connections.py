@@ -348,9 +348,9 @@ class GuardedH11Protocol(H11Protocol):
         ]
         self.socket.write(b"".join(self.conn.send(event) or b"" for event in events))
 
-    def _log(self, message: str, *args: object, warn: bool = False) -> None:
+    def _log(self, message: str, *args: object) -> None:
         prefix = f"{self.client[0]}:{self.client[1]} - " if self.client else ""
-        (self.logger.warning if warn else self.logger.info)(prefix + message, *args)
+        self.logger.info(prefix + message, *args)
 
 
 class _GentleClose:

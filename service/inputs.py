@@ -18,7 +18,7 @@ from completion.grid import GRID_SIZE, Intrinsics, VoxelGrid, depth_to_points, i
 
 # MAX_COORDINATE_M: the largest |coordinate| (metres) accepted in points, depth and transforms:
 # far beyond any depth camera, small enough that fitting a grid cannot overflow
-from grasp_client.wire import MAX_COORDINATE_M, object_pixels
+from grasp_client.wire import MAX_COORDINATE_M, object_pixels, transform
 from service.schemas import DepthIn, GridIn, ViewIn
 
 #: Voxel pitch (metres) a client-made grid may have: 0.1 mm to 10 m.
@@ -298,19 +298,9 @@ def _mask(text: str, shape: tuple[int, int], label: int | None = None) -> np.nda
             loc, f"mask is {image.size[0]}×{image.size[1]} but the depth image is {w}×{h}"
         )
     try:
-        return object_pixels(_pixels(image, loc), label)
+        return object_pixels(_pixels(image, loc), label, kind="an 8-bit PNG")
     except ValueError as exc:
-        message = str(exc).replace("the mask (uint8)", "the mask (an 8-bit PNG)")
-        raise InputError(loc, message) from None
-
-
-def _matrix(rows: list[list[float]], loc: tuple[str, ...], what: str) -> np.ndarray:
-    m = np.asarray(rows, dtype=np.float64)
-    if np.abs(m).max() > MAX_COORDINATE_M:
-        raise InputError(loc, f"{what} entries must lie within ±{MAX_COORDINATE_M:g}")
-    if not np.allclose(m[3], [0.0, 0.0, 0.0, 1.0]):
-        raise InputError(loc, f"{what} must have the last row [0, 0, 0, 1], got {m[3].tolist()}")
-    return m
+        raise InputError(loc, str(exc)) from None
 
 
 def _grid(grid: GridIn) -> VoxelGrid:
@@ -322,7 +312,10 @@ def _grid(grid: GridIn) -> VoxelGrid:
             f"grid.data must hold {n} bytes (40³ bits packed with numpy.packbits), got {len(raw)}",
         )
     loc = ("body", "grid", "grid_to_camera")
-    t = _matrix(grid.grid_to_camera, loc, "grid_to_camera")
+    try:
+        t = transform(grid.grid_to_camera, "grid_to_camera")
+    except ValueError as exc:
+        raise InputError(loc, str(exc)) from None
     pitch = float(t[0, 0])
     scale = t[:3, :3]
     if not MIN_PITCH_M <= pitch <= MAX_PITCH_M or not np.allclose(

@@ -131,8 +131,9 @@ def completion_mesh(scene: Scene, source: str, views: int, models: dict):
     for t in range(views):
         stream.add_view(depth=scene.depth[t], intrinsics=scene.intrinsics, mask=scene.mask[t],
                         camera_to_world=scene.cameras[t], support_plane=TABLE)
-        points = G.depth_to_points(scene.depth[t], scene.intrinsics, scene.mask[t])
-        seen.append(G.transform_points(points, scene.cameras[t]))
+        if source == "fusion":  # its own points; the other rows need only the stream's grid
+            points = G.depth_to_points(scene.depth[t], scene.intrinsics, scene.mask[t])
+            seen.append(G.transform_points(points, scene.cameras[t]))
     camera = scene.cameras[views - 1]
     if not stream.seen:
         return None, camera

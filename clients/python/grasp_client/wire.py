@@ -104,14 +104,21 @@ def _as_lists(value: Any) -> Any:
     return np.asarray(value, dtype=np.float64).tolist()
 
 
-def rigid_pose(value: Any, name: str = "camera_pose", what: str = "camera→world") -> np.ndarray:
-    """A rigid 4×4 transform: finite entries within ±:data:`MAX_COORDINATE_M`, last row
-    [0, 0, 0, 1], an orthonormal rotation with determinant +1 (within :data:`RIGID_TOL`)."""
+def transform(value: Any, name: str) -> np.ndarray:
+    """A 4×4 homogeneous transform: finite entries within ±:data:`MAX_COORDINATE_M`, last row
+    [0, 0, 0, 1]."""
     m = finite_array(value, (4, 4), name)
     if np.abs(m).max() > MAX_COORDINATE_M:
         raise ValueError(f"{name} entries must lie within ±{MAX_COORDINATE_M:g}")
     if not np.allclose(m[3], [0.0, 0.0, 0.0, 1.0]):
         raise ValueError(f"{name} must have the last row [0, 0, 0, 1], got {m[3].tolist()}")
+    return m
+
+
+def rigid_pose(value: Any, name: str = "camera_pose", what: str = "camera→world") -> np.ndarray:
+    """A rigid :func:`transform`: an orthonormal rotation with determinant +1 (within
+    :data:`RIGID_TOL`)."""
+    m = transform(value, name)
     r = m[:3, :3]
     if not np.allclose(r @ r.T, np.eye(3), atol=RIGID_TOL) or np.linalg.det(r) < 0:
         raise ValueError(f"{name} must be a rigid {what} transform (an orthonormal rotation "
@@ -125,7 +132,6 @@ Pose = Annotated[np.ndarray, Array((4, 4), "4×4, row-major")]
 RigidPose = Annotated[np.ndarray, Array(
     (4, 4), "camera→world, rigid (an orthonormal rotation with determinant +1, last row "
     "[0, 0, 0, 1], metres)", check=rigid_pose)]
-Vector3 = Annotated[np.ndarray, Array((3,), "x, y, z")]
 
 
 # ------------------------------------------------------------------------------- support plane
@@ -318,10 +324,11 @@ class Grasp:
 MASK_VALUES = ({0, 1}, {0, 255})
 
 
-def object_pixels(mask: Any, label: int | None = None) -> np.ndarray:
+def object_pixels(mask: Any, label: int | None = None, *, kind: str | None = None) -> np.ndarray:
     """(H, W) bool: the object's pixels of a boolean, 0/1 or 0/255 mask (every object pixel the
     same 1 or 255), or the pixels equal to ``label`` in a label image. Anything else raises
-    ``ValueError`` naming the dtype and the values the mask holds."""
+    ``ValueError`` naming what the mask is (``kind``, default its dtype) and the values it
+    holds."""
     m = np.asarray(mask)
     if label is not None:
         return m == label
@@ -336,9 +343,9 @@ def object_pixels(mask: Any, label: int | None = None) -> np.ndarray:
         return inside
     values = np.unique(m)
     shown = ", ".join(f"{v:g}" for v in values[:8].tolist()) + (", …" if len(values) > 8 else "")
-    raise ValueError(f"the mask ({m.dtype}) holds {len(values)} distinct values ({shown}); a "
-                     "mask is boolean, 0/1 or 0/255 with 0 = background, or a label image with "
-                     "object_label, the value of the object's pixels")
+    raise ValueError(f"the mask ({kind or m.dtype}) holds {len(values)} distinct values "
+                     f"({shown}); a mask is boolean, 0/1 or 0/255 with 0 = background, or a label "
+                     "image with object_label, the value of the object's pixels")
 
 
 # ------------------------------------------------------------------------------- the encodings
