@@ -48,7 +48,7 @@ import dataclasses
 import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
-from typing import NamedTuple
+from typing import TYPE_CHECKING, NamedTuple
 
 import numpy as np
 import trimesh
@@ -58,6 +58,9 @@ from grasp.quality import EPSILON_NO_CLOSURE, MU_RUBBER, contacts_quality
 from grasp.table import SupportPlane
 from hands.barrett import FINGERS, JOINT_NAMES
 from hands.barrett.kinematics import rotation_about
+
+if TYPE_CHECKING:
+    from grasp.verify import Verification
 
 __all__ = [
     "Contact",
@@ -150,6 +153,9 @@ class GraspResult:
     hold_probability : float
         On a table, the planner's estimate that the grasp holds when the object is lifted
         (:mod:`grasp.lift_model`); NaN where it was not estimated.
+    verification : grasp.verify.Verification or None
+        What lift-testing it on the planned mesh saw (``plan(..., verify=N)``, :mod:`grasp.verify`);
+        None when the plan verified nothing.
     """
 
     success: bool
@@ -165,6 +171,7 @@ class GraspResult:
     finger_stops: tuple[str, ...] = field(default=("limit", "limit", "limit"))
     approach_stop: str = "contact"
     hold_probability: float = math.nan
+    verification: Verification | None = None
 
     def joint(self, name: str) -> float:
         """One joint angle (degrees) by name, e.g. ``result.joint("f3_prox")``."""
@@ -174,7 +181,7 @@ class GraspResult:
 
     def as_dict(self) -> dict:
         """JSON-ready dictionary (lists instead of arrays)."""
-        return {
+        out = {
             "success": self.success,
             "reason": self.reason,
             "palm_pose": np.asarray(self.palm_pose).tolist(),
@@ -193,6 +200,9 @@ class GraspResult:
             "hold_probability": None if math.isnan(self.hold_probability)
             else self.hold_probability,
         }
+        if self.verification is not None:  # only plans that verified say it
+            out["verification"] = self.verification.as_dict()
+        return out
 
 
 # -- helpers ---------------------------------------------------------------------------------------

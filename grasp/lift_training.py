@@ -40,7 +40,7 @@ def _collect_one(job: tuple[int, str, int]) -> list[dict]:
     for rank, grasp in enumerate(plan(world, seed=index, top_k=None, support_plane=table)):
         if not grasp.success:
             break
-        lifted = lift_test(world, grasp, seed=index, table=True, approach="guarded")
+        lifted = lift_test(world, grasp, seed=index, support_plane=table, approach="guarded")
         x = features(grasp, world, table)
         rows.append({"object_id": object_id, "rank": rank, "held": int(lifted.success),
                      **{name: round(float(v), 6) for name, v in zip(FEATURES, x, strict=True)}})

@@ -47,6 +47,8 @@ from grasp.candidates import (
 from grasp.collision import CollisionScene, check_mesh
 from grasp.screen import Screen, fingertip_span
 from grasp.table import SupportPlane, crosses
+from grasp.verify import DEFAULT_VERIFY, VerifySettings
+from grasp.verify import verify as verify_grasps
 from hands.barrett import JOINT_NAMES
 
 #: Largest object the planner tries, as its bounding-box diagonal (metres). The open BH8-282
@@ -128,6 +130,8 @@ def plan(
     max_travel: float | None = None,
     support_plane: SupportPlane | None = None,
     budget: int | None = AUTOGRASP_BUDGET,
+    verify: int = 0,
+    verify_settings: VerifySettings = DEFAULT_VERIFY,
     timings: dict[str, float] | None = None,
 ) -> list[GraspResult]:
     """Plan BarrettHand grasps on ``mesh``: the best ``top_k`` distinct grasps of
@@ -161,10 +165,17 @@ def plan(
     budget : int or None
         How many candidates are autograsped exactly, most promising first by the screen (None,
         or at least ``n_candidates``: all of them, no screen).
+    verify : int
+        Lift-test at most this many of the best-ranked force-closure grasps on ``mesh`` itself
+        (standing on the support plane, its mass estimated from it), in ``verify_settings``'s
+        perturbed trials, until one holds in every trial; the grasps that held come first
+        (:mod:`grasp.verify`). 0: no verification (the plan is exactly the unverified one).
+    verify_settings : VerifySettings
+        The trials' number and ranges (:class:`grasp.verify.VerifySettings`).
     timings : dict or None
         Filled with each stage's seconds ("setup": the collision model and the candidates;
-        "screen"; "autograsp"; "rank", with the quality measures) and the counts
-        "screened" and "autograsped" (the budget spent).
+        "screen"; "autograsp"; "rank", with the quality measures; "verify") and the counts
+        "screened", "autograsped" (the budget spent) and "verified" (grasps lift-tested).
 
     Returns
     -------
@@ -172,7 +183,7 @@ def plan(
     ``top_k``, without near-duplicates (:func:`distinct`).
     """
     clock = time.perf_counter()
-    stages = {"setup": 0.0, "screen": 0.0, "autograsp": 0.0, "rank": 0.0}
+    stages = {"setup": 0.0, "screen": 0.0, "autograsp": 0.0, "rank": 0.0, "verify": 0.0}
 
     def lap(stage: str) -> None:
         nonlocal clock
@@ -185,6 +196,8 @@ def plan(
         raise ValueError(f"top_k must be >= 1 or None, got {top_k}")
     if budget is not None and budget < 1:
         raise ValueError(f"budget must be >= 1 or None, got {budget}")
+    if isinstance(verify, bool) or not isinstance(verify, int) or verify < 0:
+        raise ValueError(f"verify must be a count of grasps >= 0, got {verify!r}")
     problem = too_large(scene.mesh)
     if problem is not None:
         raise ValueError(problem)
@@ -213,7 +226,18 @@ def plan(
             results.append(result)
     lap("autograsp")
     # every autograsped result is ranked; top_k only cuts the list
-    best = rank(results, scene) if top_k is None else _best_distinct(results, scene, top_k)
+    tried = 0
+    if verify:
+        ranked = distinct(rank(results, scene))
+        lap("rank")
+        best = verify_grasps(scene.mesh, ranked, verify, support_plane, seed, verify_settings)
+        tried = sum(g.verification.tried for g in best)
+        best = best if top_k is None else best[:top_k]
+        lap("verify")
+    elif top_k is None:
+        best = rank(results, scene)
+    else:
+        best = _best_distinct(results, scene, top_k)
     if support_plane is not None and best and not best[0].success:
         limits = table_limits(scene.mesh, support_plane)
         if limits is not None:
@@ -221,7 +245,7 @@ def plan(
     lap("rank")
     if timings is not None:
         timings.update(stages, screened=len(candidates) if screened else 0,
-                       autograsped=len(order))
+                       autograsped=len(order), verified=tried)
     return best
 
 

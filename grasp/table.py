@@ -21,7 +21,7 @@ from grasp_client.wire import SupportPlane
 from hands.barrett import HandKinematics
 
 __all__ = ["TABLE_TOL_M", "SupportPlane", "crosses", "hand_clearance", "hand_points",
-           "hand_primitives"]
+           "hand_primitives", "to_upright"]
 
 #: A grasp whose hand reaches further below the table is dropped (only rounding can put it there).
 TABLE_TOL_M = 1e-6
@@ -74,6 +74,25 @@ def hand_clearance(plane: SupportPlane, grasp: HandPose) -> float:
     return float(
         min(plane.lowest(kind, size, pose) for _, kind, size, pose in hand_primitives(grasp))
     )
+
+
+def to_upright(plane: SupportPlane) -> np.ndarray:
+    """(4, 4) rigid transform from ``plane``'s frame to one where the plane is z = 0 with its
+    normal along +z (the frame a z-up simulation needs): the smallest rotation taking n to +z,
+    then the plane's offset. Exactly the identity for the plane z = 0 itself."""
+    n = plane.normal
+    z = np.array([0.0, 0.0, 1.0])
+    axis, cos = np.cross(n, z), float(n @ z)
+    sin = float(np.linalg.norm(axis))
+    out = np.eye(4)
+    if sin > 1e-12:  # Rodrigues' formula about n × z
+        k = axis / sin
+        skew = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
+        out[:3, :3] = np.eye(3) + sin * skew + (1.0 - cos) * skew @ skew
+    elif cos < 0.0:  # n = −z: half a turn about x
+        out[:3, :3] = np.diag([1.0, -1.0, -1.0])
+    out[2, 3] = plane.offset  # z' = n·x + d
+    return out
 
 
 def crosses(plane: SupportPlane, grasp: HandPose, *, tol: float = TABLE_TOL_M) -> bool:

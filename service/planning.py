@@ -62,6 +62,25 @@ def plan_grasps(
     return results, time.perf_counter() - start
 
 
+def lift_trial(vertices: np.ndarray, faces: np.ndarray, grasp, support_plane, trial):
+    """One verification trial (:func:`grasp.verify.run_trial`) of ``grasp`` on the mesh."""
+    import trimesh
+
+    from grasp.verify import run_trial
+
+    return run_trial(trimesh.Trimesh(vertices, faces, process=False), grasp, support_plane, trial)
+
+
+def decompose(vertices: np.ndarray, faces: np.ndarray) -> None:
+    """The mesh's convex pieces for the lift test, computed into the shared disk cache
+    (:func:`grasp.physics.convex_decomposition`) while another worker plans."""
+    import trimesh
+
+    from grasp.physics import convex_decomposition
+
+    convex_decomposition(trimesh.Trimesh(vertices, faces, process=False))
+
+
 def _import_planner() -> None:
     import grasp.planner  # noqa: F401
 
@@ -112,13 +131,16 @@ class Planner:
         seed: int,
         top_k: int,
         support_plane=None,
+        verify: int = 0,
         gone: Callable[[], Awaitable[bool]] | None = None,
     ) -> tuple[list, float, bool]:
-        """The plan, its planning seconds and whether it came from the cache or from the same
-        plan another request was computing (then the seconds are those of the original plan):
-        identical concurrent plans are computed once. ``gone``: an async check that the client
-        disconnected, asked once a worker is free."""
-        key = _plan_key(vertices, faces, n_candidates, seed, (top_k, self.budget), support_plane)
+        """The plan, its planning seconds (verification included) and whether it came from the
+        cache or from the same plan another request was computing (then the seconds are those
+        of the original plan): identical concurrent plans are computed once. ``verify``: lift-test
+        at most this many of the best grasps (:func:`_verified`). ``gone``: an async check that
+        the client disconnected, asked once a worker is free."""
+        options = (top_k, self.budget, verify)
+        key = _plan_key(vertices, faces, n_candidates, seed, options, support_plane)
         if key in self._cache:
             self._cache.move_to_end(key)
             self.cache_hits += 1
@@ -132,12 +154,13 @@ class Planner:
                     raise  # this request was cancelled itself
                 # the computing request's client went, or its worker: plan for this one
                 return await self.plan(vertices, faces, n_candidates=n_candidates, seed=seed,
-                                       top_k=top_k, support_plane=support_plane, gone=gone)
+                                       top_k=top_k, support_plane=support_plane, verify=verify,
+                                       gone=gone)
         shared = asyncio.get_running_loop().create_future()
         self._inflight[key] = shared
         try:
             result = await self._admitted(key, vertices, faces, n_candidates, seed, top_k,
-                                          support_plane, gone)
+                                          support_plane, verify, gone)
         except asyncio.CancelledError:
             shared.cancel()
             raise
@@ -152,8 +175,8 @@ class Planner:
         return (*result, False)
 
     async def _admitted(self, key, vertices, faces, n_candidates, seed, top_k, support_plane,
-                        gone) -> tuple[list, float]:
-        """The plan run by a worker once admitted (bounded queue), then cached."""
+                        verify, gone) -> tuple[list, float]:
+        """The plan run by a worker once admitted (bounded queue), verified, then cached."""
         if self._pending >= self.workers + self.queue:
             raise PlannerBusy(
                 f"{self._pending} grasp plans are running or waiting (at most "
@@ -161,12 +184,20 @@ class Planner:
             )
         self._pending += 1
         try:
+            start = time.perf_counter()
+            pieces = None
             async with self._running:
                 if gone is not None and await gone():
                     raise ClientGone("the client disconnected while its plan waited")
-                result = await self._run(
-                    vertices, faces, n_candidates, seed, top_k, support_plane
-                )
+                if verify:  # the lift test's convex pieces, in another worker meanwhile
+                    pieces = asyncio.ensure_future(self._slot(partial(decompose, vertices, faces)))
+                result = await self._run(vertices, faces, n_candidates, seed,
+                                         None if verify else top_k, support_plane)
+            if verify:
+                await pieces
+                ranked = await self._verified(vertices, faces, result[0], verify, support_plane,
+                                              seed)
+                result = (ranked[:top_k], time.perf_counter() - start)
         finally:
             self._pending -= 1
         if self._cache_size:
@@ -174,6 +205,30 @@ class Planner:
             while len(self._cache) > self._cache_size:
                 self._cache.popitem(last=False)
         return result
+
+    async def _verified(self, vertices, faces, ranked, n, support_plane, seed) -> list:
+        """:func:`grasp.verify.verify` with each grasp's trials spread over the workers: every
+        trial takes a worker slot of its own, in turn with other requests' plans (fair share)."""
+        from grasp.planner import distinct
+        from grasp.verify import trials, verify
+
+        plan_trials = trials(seed)
+        loop = asyncio.get_running_loop()
+
+        def run(jobs):  # called from a worker thread: the trials of one grasp, at once
+            calls = [self._slot(partial(lift_trial, vertices, faces, g, plane, t))
+                     for _, g, plane, t in jobs]
+            future = asyncio.run_coroutine_threadsafe(_gather(calls), loop)
+            return future.result()
+
+        assert len(plan_trials) >= 1
+        return await anyio.to_thread.run_sync(
+            lambda: verify(None, distinct(ranked), n, support_plane, seed, run=run))
+
+    async def _slot(self, call):
+        """``call`` in a worker (process or thread) once a worker slot is free."""
+        async with self._running:
+            return await self._call(call)
 
     async def _run(self, vertices, faces, n_candidates, seed, top_k, support_plane):
         call = partial(
@@ -186,6 +241,10 @@ class Planner:
             support_plane=support_plane,
             budget=self.budget,
         )
+        return await self._call(call)
+
+    async def _call(self, call):
+        """``call`` in a worker process, or a thread (``processes=False``)."""
         if not self.processes:
             return await anyio.to_thread.run_sync(call)  # self._running bounds the workers
         pool = self._executor()
@@ -213,6 +272,10 @@ class Planner:
         if self._pool is not None:
             self._pool.shutdown(wait=True, cancel_futures=True)
             self._pool = None
+
+
+async def _gather(calls):
+    return await asyncio.gather(*calls)
 
 
 def _plan_key(vertices, faces, n_candidates, seed, top_k, support_plane) -> str:

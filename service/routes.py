@@ -21,7 +21,14 @@ from completion.stream import stored_support_plane
 from grasp.autograsp import pregrasp_pose
 from grasp.planner import palm_touches, too_large
 from grasp.table import hand_primitives
-from grasp_client.wire import JOINT_NAMES, Contact, Grasp, Primitive, SupportPlane
+from grasp_client.wire import (
+    JOINT_NAMES,
+    Contact,
+    Grasp,
+    Primitive,
+    SupportPlane,
+    Verification,
+)
 from service.deps import Services, ServicesDep, require_token
 from service.inputs import InputError
 from service.parsing import ParsedView
@@ -109,6 +116,13 @@ TopK = Annotated[int, Query(ge=1, le=64, description="grasps returned, best firs
 NCandidates = Annotated[
     int | None, Query(ge=1, description="candidates tried (default GRASP_N_CANDIDATES)")
 ]
+VerifyQuery = Annotated[
+    int | None,
+    Query(ge=0, description="lift-test at most this many of the best grasps on the completion, "
+          "standing on the support plane, before answering; the first that holds in every trial "
+          "comes first, and each grasp says what its trials saw (default GRASP_VERIFY, at most "
+          "GRASP_MAX_VERIFY; about 0.5 s a trial, spread over the planner's processes)"),
+]
 SupportPlaneQuery = Annotated[
     str | None,
     Query(
@@ -131,10 +145,11 @@ async def get_grasp(
     top_k: TopK = 1,
     n_candidates: NCandidates = None,
     support_plane: SupportPlaneQuery = None,
+    verify: VerifyQuery = None,
 ) -> GraspsOut:
     """Complete the session's current state, mesh it and plan BarrettHand grasps."""
     out, _, _ = await plan_session(
-        services, request, session_id, top_k, n_candidates, support_plane
+        services, request, session_id, top_k, n_candidates, support_plane, verify
     )
     return out
 
@@ -146,6 +161,7 @@ async def plan_session(
     top_k: int,
     n_candidates: int | None,
     support_plane: str | None,
+    verify: int | None = None,
 ):
     """What ``GET /grasp`` answers, the completion mesh it planned on (camera frame) and the
     snapshot both came from."""
@@ -156,6 +172,10 @@ async def plan_session(
         raise InputError(
             ("query", "n_candidates"), f"n_candidates must be at most {s.max_candidates}, got {n}"
         )
+    tries = s.verify if verify is None else verify
+    if tries > s.max_verify:
+        raise InputError(("query", "verify"), f"verify must be at most {s.max_verify} grasps "
+                         f"(GRASP_MAX_VERIFY), got {tries}")
     plane = None
     if support_plane is not None:
         try:
@@ -178,7 +198,7 @@ async def plan_session(
         return out, mesh, snapshot
     results, seconds, cached = await services.planner.plan(
         mesh.vertices, mesh.faces, n_candidates=n, seed=s.plan_seed, top_k=top_k,
-        support_plane=plane, gone=request.is_disconnected,
+        support_plane=plane, verify=min(tries, s.max_verify), gone=request.is_disconnected,
     )
     await services.io(services.pipeline.store.get, session_id)  # deleted while it was planned: 404
     total = (time.perf_counter() - start) * 1e3
@@ -299,6 +319,8 @@ def _grasp_out(result, camera_to_world: np.ndarray | None) -> Grasp:
         approach_stop=result.approach_stop,
         hold_probability=None if math.isnan(result.hold_probability)
         else float(result.hold_probability),
+        verification=None if result.verification is None else Verification(
+            **result.verification.as_dict()),
         contacts=[Contact(c.link, np.asarray(c.point, dtype=np.float64),
                           np.asarray(c.normal, dtype=np.float64)) for c in result.contacts],
         hand=[Primitive(link, kind, [float(v) for v in size], pose)

@@ -121,6 +121,11 @@ class Settings(BaseSettings):
         AUTOGRASP_BUDGET, ge=1, description="candidates the planner autograsps exactly, the most "
         "promising first (the rest are only screened); the top grasp does not depend on top_k"
     )
+    verify: int = Field(
+        0, ge=0, description="default of GET /grasp's verify: the best grasps lift-tested on the "
+        "completion before the answer, until one holds (0: none; docs/service.md says why)"
+    )
+    max_verify: int = Field(8, ge=0, description="largest verify a client may ask")
     torch_threads: int = Field(
         1, ge=1, description="torch intra-op threads (torch.set_num_threads)"
     )

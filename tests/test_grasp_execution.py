@@ -29,7 +29,7 @@ def test_a_box_lying_on_a_table_is_executed_as_planned():
     box = on_table(0.12, 0.08, 0.05)
     grasp = plan(box, n_candidates=64, seed=0, top_k=1, support_plane=FLOOR)[0]
     assert grasp.success and grasp.approach_stop == "contact", grasp.reason
-    lifted = lift_test(box, grasp, seed=0, table=True, approach="guarded")
+    lifted = lift_test(box, grasp, seed=0, support_plane=FLOOR, approach="guarded")
     assert lifted.success, lifted.reason
     gap = np.abs(np.asarray(grasp.joints_deg) - lifted.joints_deg)
     assert gap.max() <= 2.0, (np.asarray(grasp.joints_deg).round(1), lifted.joints_deg.round(1))
@@ -42,7 +42,7 @@ def test_a_2cm_box_gets_a_fingertip_grasp_that_holds():
     grasp = plan(box, n_candidates=64, seed=0, top_k=1, support_plane=FLOOR)[0]
     assert grasp.success, grasp.reason
     assert grasp.approach_stop == "limit" and grasp.palm_pose[2, 2] < -0.99  # from above
-    lifted = lift_test(box, grasp, seed=0, table=True, approach="guarded")
+    lifted = lift_test(box, grasp, seed=0, support_plane=FLOOR, approach="guarded")
     assert lifted.success, lifted.reason
     assert lifted.travel == pytest.approx(DEFAULT_SETTINGS.pregrasp_backoff, abs=1e-3)
 
@@ -51,7 +51,7 @@ def test_a_heavy_wide_box_gets_a_grasp_that_holds_or_the_reason_none_can():
     box = on_table(0.20, 0.20, 0.06)  # 1.2 kg at 500 kg/m³
     grasp = plan(box, n_candidates=64, seed=0, top_k=1, support_plane=FLOOR)[0]
     if grasp.success:
-        assert lift_test(box, grasp, seed=0, table=True, approach="guarded").success
+        assert lift_test(box, grasp, seed=0, support_plane=FLOOR, approach="guarded").success
     else:
         assert "wider than the 11 cm the fingertips close to" in grasp.reason, grasp.reason
         assert "20 × 20 cm on the table and 6 cm tall" in grasp.reason

@@ -240,7 +240,7 @@ def test_a_low_box_gets_a_top_down_grasp_that_lifts_it_off_the_table():
     assert top_down
     grasp = top_down[0]
     assert len(grasp.contacts) >= 3 and lowest_point(FLOOR, grasp) >= -1e-3
-    lifted = lift_test(box, grasp, table=True)
+    lifted = lift_test(box, grasp, support_plane=FLOOR)
     assert lifted.success, lifted.reason
 
 

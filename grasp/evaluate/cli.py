@@ -140,6 +140,22 @@ def build_parser() -> argparse.ArgumentParser:
         f"views, lift-tested; 0 = none; {_preset_help('benchmark')}; --benchmark alone: 100)",
     )
     p.add_argument(
+        "--verified",
+        type=integer_at_least(0),
+        default=None,
+        metavar="N",
+        help="of the benchmark's objects, how many also get the verified rows (the best grasps "
+        "lift-tested on the planned mesh before the top one is chosen; with --benchmark N and "
+        f"no --verified: all N; {_preset_help('verified')})",
+    )
+    p.add_argument(
+        "--benchmark-verify",
+        type=integer_at_least(1),
+        default=4,
+        metavar="N",
+        help="grasps the verified rows try at most, until one holds in every trial (default 4)",
+    )
+    p.add_argument(
         "--benchmark-candidates",
         type=integer_at_least(1),
         default=64,
@@ -248,6 +264,8 @@ def settings_from_args(args: argparse.Namespace, parser: argparse.ArgumentParser
              if getattr(args, f.name) is not None}
     if "count" in given and "grasp_count" not in given:  # grasp no more than is counted
         given["grasp_count"] = min(given["count"], preset.grasp_count)
+    if "benchmark" in given and "verified" not in given:  # every object the benchmark names
+        given["verified"] = given["benchmark"]
     sizes = dataclasses.replace(preset, **given)
     return Settings(
         **dataclasses.asdict(sizes),
@@ -256,6 +274,7 @@ def settings_from_args(args: argparse.Namespace, parser: argparse.ArgumentParser
         prior_path=str(prior_path) if PRIOR in args.models else "",
         conditions=tuple(args.conditions),
         benchmark_candidates=args.benchmark_candidates,
+        benchmark_verify=args.benchmark_verify,
         objects=objects,
         views=args.views,
         seed=args.seed,

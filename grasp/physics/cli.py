@@ -6,6 +6,7 @@ from completion.objects import mesh_from_spec
 from grasp.physics.lift import lift_test
 from grasp.physics.settings import APPROACHES, DENSITY_KG_M3
 from grasp.quality import MU_RUBBER
+from grasp.table import SupportPlane
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -26,7 +27,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--no-shake", action="store_true", help="lift only")
     parser.add_argument("--friction", type=float, default=MU_RUBBER, help="hand–object μ")
     parser.add_argument("--density", type=float, default=DENSITY_KG_M3, help="kg/m³")
-    parser.add_argument("--table", action="store_true", help="object on a table")
+    parser.add_argument("--table", action="store_true",
+                        help="the object stands on a table under its lowest point (z up): "
+                        "planned with it and lift-tested on it")
     parser.add_argument(
         "--approach", choices=APPROACHES, default="planned",
         help="planned: to the planned pose (default); guarded: toward it, stopping at the first "
@@ -35,8 +38,10 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     try:
         mesh = mesh_from_spec(args.mesh)
+        plane = SupportPlane([0.0, 0.0, 1.0], -float(mesh.bounds[0, 2])) if args.table else None
         t0 = time.perf_counter()
-        grasps = plan(mesh, n_candidates=args.candidates, seed=args.seed, top_k=args.top_k)
+        grasps = plan(mesh, n_candidates=args.candidates, seed=args.seed, top_k=args.top_k,
+                      support_plane=plane)
         t_plan = time.perf_counter() - t0
     except ValueError as exc:
         parser.error(str(exc))
@@ -53,7 +58,7 @@ def main(argv: list[str] | None = None) -> int:
                 shake=not args.no_shake,
                 friction=args.friction,
                 density=args.density,
-                table=args.table,
+                support_plane=plane,
                 approach=args.approach,
             )
         except ValueError as exc:

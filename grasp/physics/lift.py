@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Callable
 from pathlib import Path
@@ -23,6 +24,7 @@ from grasp.physics.settings import (
 )
 from grasp.physics.world import DynamicWorld
 from grasp.quality import MU_RUBBER
+from grasp.table import SupportPlane, to_upright
 from hands.barrett import BH8_282, BarrettParams
 
 
@@ -74,7 +76,7 @@ def lift_test(
     shake: bool = True,
     friction: float = MU_RUBBER,
     density: float = DENSITY_KG_M3,
-    table: bool = False,
+    support_plane: SupportPlane | None = None,
     approach: Approach = "planned",
     settings: LiftSettings = DEFAULT_SETTINGS,
     params: BarrettParams = BH8_282,
@@ -99,9 +101,12 @@ def lift_test(
         Hand–object Coulomb friction μ (default 1.0, rubber; hands/barrett/README.md).
     density : float
         Object density in kg/m³ (default 500).
-    table : bool
-        Stand the object on a table (at its lowest point) with gravity on from the start, instead
-        of floating it on a weak support until the hand has closed.
+    support_plane : SupportPlane or None
+        The table the object stands on, in the mesh's frame (n·x + d = 0, n up): gravity along
+        −n from the start, the lift along +n, the table top through the object's lowest point
+        (which must lie within ``settings.plane_tolerance`` of the plane: a completion cut at
+        the plane rests on it, a mesh far above or through it is refused). None floats the
+        object on a weak support until the hand has closed (world z up).
     approach : "planned" or "guarded"
         From the pre-grasp pose (``settings.pregrasp_backoff`` behind the palm pose, hand open),
         "planned" moves the palm to ``grasp.palm_pose`` exactly (open loop); "guarded" is how a
@@ -132,6 +137,20 @@ def lift_test(
     if approach not in APPROACHES:
         raise ValueError(f"approach must be one of {APPROACHES}, got {approach!r}")
     s = settings
+    upright = np.eye(4)
+    if support_plane is not None:  # simulate in the plane's upright frame (z = n·x + d)
+        upright = to_upright(support_plane)
+        if not np.array_equal(upright, np.eye(4)):
+            mesh = mesh.copy().apply_transform(upright)
+            grasp = dataclasses.replace(grasp, palm_pose=upright @ check_pose(grasp.palm_pose))
+        gap = float(mesh.bounds[0, 2])
+        if abs(gap) > s.plane_tolerance:
+            where = "above" if gap > 0 else "below"
+            raise ValueError(f"the object does not rest on the support plane: its lowest point "
+                             f"is {100 * abs(gap):.1f} cm {where} it (at most "
+                             f"{100 * s.plane_tolerance:.0f} cm); is the plane in the mesh's "
+                             "frame?")
+    table = support_plane is not None
     directions = np.random.default_rng(seed).normal(size=(s.shake_count, 3))
     directions /= np.linalg.norm(directions, axis=1, keepdims=True)
     palm = check_pose(grasp.palm_pose)
@@ -143,7 +162,7 @@ def lift_test(
         mesh,
         friction=friction,
         density=density,
-        table=table,
+        table_top=float(mesh.bounds[0, 2]) if table else None,
         settings=s,
         params=params,
         cache_dir=cache_dir,

@@ -67,6 +67,7 @@ class LiftSettings:
     hold_tolerance: float = HOLD_TOLERANCE_M
     drop_distance: float = 0.05  # stop simulating once the object is this far off (m)
     table_friction: float = 0.5
+    plane_tolerance: float = 0.02  # an object on a support plane rests within this of it (m)
     support_factor: float = 1.0  # without a table, a support of this × the weight holds the object
 
     def __post_init__(self) -> None:

@@ -64,8 +64,9 @@ class DynamicWorld:
         Lateral friction of the hand links (the object gets 1.0; pybullet multiplies them).
     density : float
         Object density (kg/m³).
-    table : bool
-        Put a static table top (1 m square) under the object's lowest point.
+    table_top : float or None
+        Put a static table (1 m square) whose top is the plane z = ``table_top``, centred under
+        the object; None: no table.
     settings : LiftSettings
     params : BarrettParams
     cache_dir : path or None
@@ -82,7 +83,7 @@ class DynamicWorld:
         *,
         friction: float = MU_RUBBER,
         density: float = DENSITY_KG_M3,
-        table: bool = False,
+        table_top: float | None = None,
         settings: LiftSettings = DEFAULT_SETTINGS,
         params: BarrettParams = BH8_282,
         cache_dir: str | Path | None = None,
@@ -146,11 +147,11 @@ class DynamicWorld:
                 angularDamping=0.0,
             )
             self.table_id: int | None = None
-            if table:
+            if table_top is not None:
                 half = [0.5, 0.5, 0.025]
                 box = c.createCollisionShape(pybullet.GEOM_BOX, halfExtents=half)
                 centre = np.asarray(mesh.bounds).mean(axis=0)
-                centre[2] = float(mesh.bounds[0, 2]) - half[2]
+                centre[2] = float(table_top) - half[2]
                 self.table_id = c.createMultiBody(0.0, box, basePosition=centre.tolist())
                 c.changeDynamics(self.table_id, -1, lateralFriction=settings.table_friction)
             with tempfile.TemporaryDirectory() as tmp:

@@ -13,7 +13,7 @@ from grasp_client.client import (
     SessionGone,
     Unauthorized,
 )
-from grasp_client.wire import JOINT_NAMES, Contact, Grasp, Primitive, SupportPlane
+from grasp_client.wire import JOINT_NAMES, Contact, Grasp, Primitive, SupportPlane, Verification
 
 __version__ = "0.2.0"
 
@@ -29,5 +29,6 @@ __all__ = [
     "Session",
     "SessionGone",
     "SupportPlane",
+    "Verification",
     "Unauthorized",
 ]

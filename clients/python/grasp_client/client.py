@@ -219,13 +219,18 @@ class Session:
         ``grid_to_camera``, such as the service's ``completion.grid.VoxelGrid``."""
         return self._post({"grid": grid_field(grid)}, camera_pose)
 
-    def grasps(self, top_k: int = 1, *, n_candidates: int | None = None) -> list[Grasp]:
+    def grasps(self, top_k: int = 1, *, n_candidates: int | None = None,
+               verify: int | None = None) -> list[Grasp]:
         """The best ``top_k`` distinct grasps of the current completion, best first; an empty
-        list when no candidate held (``last_reason`` says why)."""
+        list when no candidate held (``last_reason`` says why). ``verify``: lift-test at most
+        this many of the best on the completion first (each grasp's ``verification`` says what
+        its trials saw; default: the service's)."""
         self._need_id()
         params: dict[str, Any] = {"session_id": self.id, "top_k": int(top_k)}
         if n_candidates is not None:
             params["n_candidates"] = int(n_candidates)
+        if verify is not None:
+            params["verify"] = int(verify)
         out = self.client.request("GET", "/grasp", params=params).json()
         self.last_reason = out.get("reason")
         return [Grasp.from_json(g) for g in out["grasps"]]

@@ -252,6 +252,30 @@ class Primitive:
 
 
 @dataclass(frozen=True, eq=False)
+class Verification:
+    """What lift-testing a grasp on the completion saw before it was returned (``verify=N``)."""
+
+    tried: Annotated[bool, Doc(
+        "whether it was lift-tested (the grasps ranked below the first that held, or beyond the "
+        "N tried, were not)")]
+    trials: Annotated[int, Doc("lift trials run (perturbed mass, friction, shake)")] = 0
+    held: Annotated[int, Doc("trials in which the object stayed in the hand")] = 0
+    first_drop: Annotated[str | None, Doc(
+        "why the first trial that dropped it did; null when every trial held")] = None
+
+    @property
+    def held_all(self) -> bool:
+        """Tried, and held in every trial."""
+        return self.tried and self.held == self.trials
+
+    @classmethod
+    def from_json(cls, v: Mapping[str, Any]) -> Verification:
+        drop = v.get("first_drop")
+        return cls(bool(v["tried"]), int(v["trials"]), int(v["held"]),
+                   None if drop is None else str(drop))
+
+
+@dataclass(frozen=True, eq=False)
 class Grasp:
     """One planned grasp. Poses are 4×4 float64 arrays; ``joints_deg`` the 8 joints by name in
     degrees (``joint_array``: the same in :data:`JOINT_NAMES` order)."""
@@ -284,6 +308,8 @@ class Grasp:
         "with a support plane, the ranking's estimate that the grasp holds when the object is "
         "lifted (a model learned from lift tests); null without one")]
     contacts: list[Contact]
+    verification: Annotated[Verification | None, Doc(
+        "with verify > 0, what the lift trials on the completion saw; null without")] = None
     hand: Annotated[list[Primitive], Doc(
         "the hand at this grasp as collision primitives placed by its kinematics")] = field(
         default_factory=list)
@@ -314,6 +340,8 @@ class Grasp:
             approach_stop=g.get("approach_stop", "contact"),
             hold_probability=None if probability is None else float(probability),
             contacts=[Contact.from_json(c) for c in g["contacts"]],
+            verification=None if g.get("verification") is None
+            else Verification.from_json(g["verification"]),
             hand=[Primitive.from_json(p) for p in g.get("hand", ())],
         )
 

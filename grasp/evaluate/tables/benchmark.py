@@ -13,6 +13,7 @@ from grasp.evaluate.cells import fmt
 from grasp.evaluate.config import BENCHMARK_TABLE, FUSION, GRASP_SUCCESS, Job, Settings
 from grasp.evaluate.records import SequenceResult, StageClock, Timings, key_seed
 from grasp.evaluate.tables.base import Table
+from grasp.verify import DEFAULT_VERIFY
 
 LABELS = {
     "true_mesh": "True mesh (planned on the truth)",
@@ -20,6 +21,9 @@ LABELS = {
     "mvp_4views": "MVP, 4 views",
     "single_view_1view": "Single-View, 1 view",
     "registered_fusion_4views": "Registered fusion, 4 views (ref.)",
+    "true_mesh_verified": "True mesh, verified",
+    "mvp_1view_verified": "MVP, 1 view, verified",
+    "mvp_4views_verified": "MVP, 4 views, verified",
 }
 
 
@@ -33,14 +37,18 @@ class BenchmarkTable(Table):
                 for index, object_id in enumerate(b.benchmark_objects(settings.benchmark,
                                                                       settings.seed))]
 
-    def rows(self, evaluator: Any) -> list[str]:
-        """The benchmark rows this run's models allow (the true mesh always)."""
-        def runs(source: str | None) -> bool:
+    def rows(self, evaluator: Any, job: Job) -> list[str]:
+        """The benchmark rows this run's models allow (the true mesh always); the verified rows
+        for the first ``settings.verified`` objects."""
+        def runs(row: str) -> bool:
+            source = b.ROW_SOURCES[row][0]
+            if row in b.VERIFIED_ROWS and job.index >= evaluator.settings.verified:
+                return False
             if source == "fusion":
                 return FUSION in evaluator.settings.rows and "mvp" in evaluator.models
             return source is None or source in evaluator.models
 
-        return [r for r in b.BENCHMARK_ROWS if runs(b.ROW_SOURCES[r][0])]
+        return [r for r in b.BENCHMARK_ROWS if runs(r)]
 
     def run(self, evaluator: Any, job: Job) -> SequenceResult:
         s = evaluator.settings
@@ -50,8 +58,9 @@ class BenchmarkTable(Table):
         scene = b.make_scene(object_id, job.index, s.seed, evaluator.renderer)
         seed = key_seed(s.seed, job.table, job.index)
         with quiet_fds(1):
-            outcome = b.run_object(scene, evaluator.models, self.rows(evaluator),
-                                   candidates=s.benchmark_candidates, seed=seed)
+            outcome = b.run_object(scene, evaluator.models, self.rows(evaluator, job),
+                                   candidates=s.benchmark_candidates, seed=seed,
+                                   verify=s.benchmark_verify)
         clock.charge("benchmark")
         record = b.object_record(object_id, scene.mesh, outcome)
         return SequenceResult(job, [object_id], {}, timings=timings, benchmark=record)
@@ -96,6 +105,7 @@ class BenchmarkTable(Table):
         lines += ["", "Planned vs executed joints: the median over objects of the mean absolute "
                   "difference between the finger joints the planner predicted and those the lift "
                   "test's hand ended with (8 joints, degrees).", ""]
+        lines += _verification(records, cfg)
         failed = [r for r in records if not r["rows"].get("true_mesh", {"held": True})["held"]]
         if failed:
             lines += ["Failures of the true-mesh row (benchmark_failures.png shows them):", "",
@@ -107,6 +117,44 @@ class BenchmarkTable(Table):
                              f"{o.get('kind', '—')} | {o['reason']} |")
             lines.append("")
         return lines
+
+
+def _verification(records: list[dict], cfg: dict) -> list[str]:
+    """The verified rows: how their top grasps' trials on the planned mesh agree with the
+    referee on the true object (a confusion table per row)."""
+    rows = [row for row in b.VERIFIED_ROWS if any(row in r["rows"] for r in records)]
+    if not rows:
+        return []
+    v = DEFAULT_VERIFY
+    lines = [
+        f"Verified rows: the planner lift-tests its best grasps (at most "
+        f"{cfg.get('benchmark_verify', '?')}, in {v.trials} perturbed trials each: mass "
+        f"×{v.mass_factor[0]:g}–{v.mass_factor[1]:g}, μ {v.friction[0]:g}–{v.friction[1]:g}, "
+        "their own shakes) **on the mesh it planned on** (the completion for the MVP rows), "
+        "standing on the table, until one holds in every trial; that one is executed on the "
+        "true object. Whether the top grasp's trials held, against the referee:",
+        "",
+        "| Row | objects | grasps tried (median) | trials held, referee held | trials held, "
+        "referee dropped | trials dropped, referee held | trials dropped, referee dropped | "
+        "not tried |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    for row in rows:
+        outcomes = [r["rows"][row] for r in records if row in r["rows"]]
+        cells = {(True, True): 0, (True, False): 0, (False, True): 0, (False, False): 0}
+        untried = 0
+        for o in outcomes:
+            v = o.get("verification")
+            if not v or not v["tried"]:
+                untried += 1
+                continue
+            cells[(v["held"] == v["trials"], bool(o["held"]))] += 1
+        tried = [o["tried"] for o in outcomes if "tried" in o]
+        median = f"{np.median(tried):.0f}" if tried else "—"
+        lines.append(f"| {LABELS[row]} | {len(outcomes)} | {median} | {cells[True, True]} | "
+                     f"{cells[True, False]} | {cells[False, True]} | {cells[False, False]} | "
+                     f"{untried} |")
+    return lines + [""]
 
 
 def _joint_gap(records: list[dict], row: str) -> str:
