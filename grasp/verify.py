@@ -9,10 +9,10 @@ the plan's seed and a stream of their own, so that no trial repeats a referee's 
 
 The grasps are tried in the ranking's order, force-closure grasps only (those the lift model
 expects to drop included), until one holds in every trial or ``N`` were tried. The answer's order
-(:func:`order`): the grasps that held in every trial, then the ones not tried, in the ranking's
-order, then those seen to drop (most trials held first). A force-closure grasp the lift model
-expected to drop but that held in every trial becomes a success. Each grasp carries what its
-verification saw (:class:`Verification`).
+(:func:`order`): the grasps that held in every trial, then the other successes, those not tried
+(in the ranking's order) before those seen to drop (most trials held first). A force-closure grasp the lift model
+expected to drop but that held in every trial becomes a success; failures stay last. Each
+grasp carries what its verification saw (:class:`Verification`).
 
 The work is split so that the service can spread one grasp's trials over its planner processes
 and interleave them with other sessions' plans (:mod:`service.planning`): :func:`eligible`
@@ -158,9 +158,10 @@ def verdict(outcomes: Sequence[Outcome]) -> Verification:
 
 def order(ranked: Sequence[GraspResult], seen: dict[int, Verification]) -> list[GraspResult]:
     """``ranked`` with each grasp's verification (``seen``: index in ``ranked`` → what its trials
-    saw; the others were not tried), reordered: held in every trial, then not tried, then seen
-    to drop (most trials held first), each group in the ranking's order. A force-closure grasp
-    that held in every trial is a success whatever the lift model said."""
+    saw; the others were not tried), reordered: held in every trial; then the other successes,
+    those not tried before those seen to drop (most trials held first); then the failures; each
+    group in the ranking's order. A force-closure grasp that held in every trial is a success
+    whatever the lift model said."""
     out = []
     for i, g in enumerate(ranked):
         v = seen.get(i, NOT_TRIED)
@@ -172,9 +173,9 @@ def order(ranked: Sequence[GraspResult], seen: dict[int, Verification]) -> list[
         out.append(dataclasses.replace(g, verification=v))
 
     def key(i: int) -> tuple:
-        v = out[i].verification
-        group = 0 if v.held_all else 1 if not v.tried else 2
-        return (group, -(v.held / v.trials) if v.tried else 0.0, i)
+        g, v = out[i], out[i].verification
+        dropped = v.tried and not v.held_all
+        return (not v.held_all, not g.success, dropped, -v.held / v.trials if v.tried else 0.0, i)
 
     return [out[i] for i in sorted(range(len(out)), key=key)]
 
