@@ -10,9 +10,9 @@ the plan's seed and a stream of their own, so that no trial repeats a referee's 
 The grasps are tried in the ranking's order, force-closure grasps only (those the lift model
 expects to drop included), until one holds in every trial or ``N`` were tried. The answer's order
 (:func:`order`): the grasps that held in every trial, then the other successes, those not tried
-(in the ranking's order) before those seen to drop (most trials held first). A force-closure grasp the lift model
-expected to drop but that held in every trial becomes a success; failures stay last. Each
-grasp carries what its verification saw (:class:`Verification`).
+(in the ranking's order) before those seen to drop (most trials held first), then the failures.
+A force-closure grasp the lift model expected to drop but that held in every trial becomes a
+success. Each grasp carries what its verification saw (:class:`Verification`).
 
 The work is split so that the service can spread one grasp's trials over its planner processes
 and interleave them with other sessions' plans (:mod:`service.planning`): :func:`eligible`

@@ -29,6 +29,7 @@ from service.routes import (
     PathId,
     SupportPlaneQuery,
     TopK,
+    VerifyQuery,
     _errors,
     plan_session,
 )
@@ -86,10 +87,11 @@ async def get_scene(
     top_k: TopK = 5,
     n_candidates: NCandidates = None,
     support_plane: SupportPlaneQuery = None,
+    verify: VerifyQuery = None,
 ) -> Response:
     """The inspector's scene as one GLB file (latest camera frame, metres)."""
     plan, mesh, snapshot = await plan_session(
-        services, request, session_id, top_k, n_candidates, support_plane
+        services, request, session_id, top_k, n_candidates, support_plane, verify
     )
     data = await services.infer(scene_glb, plan, mesh, snapshot.observed)
     return Response(

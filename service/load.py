@@ -149,6 +149,8 @@ async def _timed(client, tally: Tally, route: str, method: str, url: str, **kwar
 
 async def _grasp(client, tally: Tally, session_id: str, args) -> None:
     params = {"session_id": session_id, "top_k": 1, "n_candidates": args.n_candidates}
+    if args.verify is not None:
+        params["verify"] = args.verify
     r = await _timed(client, tally, "GET /grasp", "GET", "/grasp", params=params)
     if r is not None:
         tally.grasp_timing_ms.append(r.json()["timing_ms"])
@@ -215,6 +217,9 @@ def main(argv: list[str] | None = None) -> int:
                    help="the scenes: objects floating (camera_pan) or resting on a table whose "
                    "plane each session is given with its first view (tabletop)")
     p.add_argument("--n-candidates", type=int, default=64, help="GET /grasp n_candidates")
+    p.add_argument("--verify", type=int, default=None,
+                   help="GET /grasp verify: grasps lift-tested before the answer (default: the "
+                   "service's GRASP_VERIFY)")
     p.add_argument(
         "--grasp-every-view",
         action="store_true",
@@ -232,6 +237,8 @@ def main(argv: list[str] | None = None) -> int:
         args.url = check_loopback(args.url)
     except ValueError as exc:
         p.error(str(exc))
+    if args.verify is not None and args.verify < 0:
+        p.error(f"--verify must be >= 0, got {args.verify}")
     for name in ("sessions", "views", "concurrency", "scenes", "n_candidates"):
         if getattr(args, name) < (2 if name == "views" else 1):
             p.error(f"--{name.replace('_', '-')} is too small: {getattr(args, name)}")

@@ -81,14 +81,27 @@ function describe(grasp, index) {
     .map(([name, value]) => `${name} ${value.toFixed(1)}°`).join(', ');
   const item = document.createElement('li');
   item.innerHTML = `<b>grasp ${index + 1}</b>: ε ${grasp.epsilon.toFixed(3)}, ` +
-    `volume ${grasp.volume.toFixed(3)}<div class="joints"></div>`;
+    `volume ${grasp.volume.toFixed(3)}<div class="verdict"></div><div class="joints"></div>`;
   item.querySelector('.joints').textContent = joints;
+  // what the ranking expects of the lift, and what the lift trials on the completion saw
+  const said = [];
+  if (grasp.hold_probability !== null && grasp.hold_probability !== undefined) {
+    said.push(`hold probability ${grasp.hold_probability.toFixed(2)}`);
+  }
+  const v = grasp.verification;
+  if (v && v.tried) {
+    said.push(`tried: held ${v.held}/${v.trials} lift trials` +
+      (v.first_drop ? ` (first drop: ${v.first_drop})` : ''));
+  } else if (v) {
+    said.push('not tried in physics');
+  }
+  item.querySelector('.verdict').textContent = said.join('; ');
   return item;
 }
 
 async function main() {
   const grasp = new URLSearchParams({ session_id: sessionId });
-  for (const key of ['top_k', 'n_candidates', 'support_plane']) {
+  for (const key of ['top_k', 'n_candidates', 'support_plane', 'verify']) {
     if (query.has(key)) grasp.set(key, query.get(key));
   }
   if (!grasp.has('top_k')) grasp.set('top_k', '5');
