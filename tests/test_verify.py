@@ -203,3 +203,48 @@ def test_verify_through_the_real_service_and_the_client(tmp_path):
                 session.grasps(verify=5)
     finally:
         server.stop()
+
+
+def test_a_verification_does_not_starve_other_sessions(monkeypatch):
+    """One planner worker: a request trying 4 grasps (8 trials, each dropping after 0.3 s) and
+    a plain plan asked just after it. Every trial takes a worker slot of its own, in turn, so the
+    plain plan is answered after at most a grasp's trials, long before the verification ends."""
+    import asyncio
+    import time
+
+    from service import planning
+
+    calls = []
+
+    def slow_drop(vertices, faces, grasp, plane, trial):
+        calls.append(trial.index)
+        time.sleep(0.3)
+        return V.Outcome(False, "the object left the hand during lift (stand-in)")
+
+    monkeypatch.setattr(planning, "lift_trial", slow_drop)
+    monkeypatch.setattr(planning, "decompose", lambda vertices, faces: None)
+    box = on_table(0.06, 0.06, 0.10)
+    other = on_table(0.05, 0.05, 0.12)
+    planner = planning.Planner(1, processes=False, cache=0)
+
+    async def both():
+        done = {}
+
+        async def ask(name, mesh, verify, delay):
+            await asyncio.sleep(delay)
+            out, _, _ = await planner.plan(mesh.vertices, mesh.faces, n_candidates=16, seed=0,
+                                           top_k=1, support_plane=FLOOR, verify=verify)
+            done[name] = time.perf_counter()
+            return out
+
+        start = time.perf_counter()
+        verified, plain = await asyncio.gather(ask("verified", box, 4, 0.0),
+                                               ask("plain", other, 0, 0.2))
+        return verified, plain, {k: v - start for k, v in done.items()}
+
+    verified, plain, done = asyncio.run(both())
+    planner.close()
+    assert verified[0].verification.tried and not verified[0].verification.held_all
+    assert plain[0].verification is None
+    assert len(calls) >= 4 and done["verified"] > 0.3 * len(calls)  # one trial at a time
+    assert done["plain"] < done["verified"] - 0.6, (done, len(calls))  # 2 trials or more after
