@@ -248,3 +248,15 @@ def test_a_verification_does_not_starve_other_sessions(monkeypatch):
     assert plain[0].verification is None
     assert len(calls) >= 4 and done["verified"] > 0.3 * len(calls)  # one trial at a time
     assert done["plain"] < done["verified"] - 0.6, (done, len(calls))  # 2 trials or more after
+
+
+def test_a_flat_box_keeps_its_fingertip_grasps_in_the_budget():
+    """A 12 × 8 × 3 cm box lying on a table: its force-closure candidates are the fingertip
+    ones, which the screen used to put 19th to 22nd (no grasp at budget 16); now they are
+    autograsped first, and the top grasp holds in the lift test."""
+    box = trimesh.creation.box(extents=[0.12, 0.08, 0.03])
+    plane = SupportPlane([0.0, 0.0, 1.0], 0.015)  # its bottom face on the table
+    best = plan(box, n_candidates=64, seed=0, top_k=1, support_plane=plane)[0]
+    assert best.success, best.reason
+    lifted = lift_test(box, best, support_plane=plane, approach="guarded")
+    assert lifted.success, lifted.reason
