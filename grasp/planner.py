@@ -47,7 +47,7 @@ from grasp.candidates import (
 from grasp.collision import CollisionScene, check_mesh
 from grasp.screen import Screen, fingertip_span
 from grasp.table import SupportPlane, crosses
-from grasp.verify import DEFAULT_VERIFY, VerifySettings
+from grasp.verify import DEFAULT_VERIFY, VerifySettings, describe
 from grasp.verify import verify as verify_grasps
 from hands.barrett import JOINT_NAMES
 
@@ -406,24 +406,30 @@ def main(argv: Sequence[str] | None = None) -> None:
     add("--budget", type=int, default=AUTOGRASP_BUDGET,
         help=f"candidates autograsped exactly, the screen's most promising first (0: all, no "
         f"screen; default {AUTOGRASP_BUDGET})")
+    add("--verify", type=int, default=0, metavar="N",
+        help="lift-test at most N of the best grasps on the mesh before answering, until one "
+        "holds in every trial (0: none)")
     add("--support-plane", type=_plane_argument, default=None, metavar="NX,NY,NZ,D",
         help="the table the object rests on (default: none), n·x + d = 0 in the mesh's frame, "
         "n up: an obstacle to the hand, no approach from below")
     args = parser.parse_args(argv)
+    if args.verify < 0:
+        parser.error(f"--verify must be >= 0, got {args.verify}")
     mesh = read_mesh_argument(parser, args.mesh, scale=args.scale)
     wall, cpu = time.perf_counter(), time.process_time()
     timings: dict[str, float] = {}
     results = plan(mesh, n_candidates=args.candidates, seed=args.seed, top_k=args.top_k,
                    support_plane=args.support_plane, budget=args.budget or None,
-                   timings=timings)
+                   verify=args.verify, timings=timings)
     wall, cpu = time.perf_counter() - wall, time.process_time() - cpu
     print(f"{args.mesh.name}: {len(mesh.faces)} faces, {args.candidates} candidates in "
           f"{wall:.2f} s wall, {cpu:.2f} s CPU")
-    names = ("setup", "screen", "autograsp", "rank")
+    names = ("setup", "screen", "autograsp", "rank") + (("verify",) if args.verify else ())
     stages = ", ".join(f"{name} {1000 * timings[name]:.0f} ms" for name in names)
     rate = timings["screened"] / timings["screen"] if timings["screened"] else 0.0
     print(f"stages: {stages}; screened {timings['screened']} ({rate:.0f} a second), "
-          f"autograsped {timings['autograsped']}")
+          f"autograsped {timings['autograsped']}"
+          + (f", lift-tested {timings['verified']}" if args.verify else ""))
     for rank, r in enumerate(results, 1):
         position = ", ".join(f"{1000 * v:.0f}" for v in r.palm_pose[:3, 3])
         approach = ", ".join(f"{v:+.2f}" for v in r.palm_pose[:3, 2])
@@ -435,6 +441,8 @@ def main(argv: Sequence[str] | None = None) -> None:
         )
         joints = zip(JOINT_NAMES, r.joints_deg, strict=True)
         print("    " + "  ".join(f"{name} {v:.1f}°" for name, v in joints))
+        if r.verification is not None:
+            print(f"    {describe(r.verification)}")
 
 
 if __name__ == "__main__":
