@@ -11,6 +11,12 @@ once rather than piling up), a request whose client has gone while it waited is 
 it reaches a worker, and a plan is kept (``GRASP_PLAN_CACHE`` plans, least recently used out)
 so that asking again about an unchanged mesh with the same options costs nothing: the inspector
 page, ``scene.glb`` and a robot polling ``GET /grasp`` between views all hit it.
+
+With ``verify=N`` (:mod:`grasp.verify`) the plan ranks every autograsped grasp, a second worker
+computes the completion's convex pieces meanwhile (:func:`decompose`, into the disk cache the lift
+test reads), and then each tried grasp's trials run at once, each in a worker slot of its own taken
+in turn with other requests' plans (:func:`lift_trial`), so that one request's verification does
+not hold other sessions back by more than a grasp's trials.
 """
 
 from __future__ import annotations
@@ -183,9 +189,9 @@ class Planner:
                 f"{self.workers + self.queue}); try again shortly"
             )
         self._pending += 1
+        pieces = None
         try:
             start = time.perf_counter()
-            pieces = None
             async with self._running:
                 if gone is not None and await gone():
                     raise ClientGone("the client disconnected while its plan waited")
@@ -200,6 +206,10 @@ class Planner:
                 result = (ranked[:top_k], time.perf_counter() - start)
         finally:
             self._pending -= 1
+            if pieces is not None and not pieces.done():
+                pieces.cancel()  # the plan failed: nobody needs the pieces
+            elif pieces is not None and not pieces.cancelled():
+                pieces.exception()  # retrieved: no "never retrieved" warning
         if self._cache_size:
             self._cache[key] = result
             while len(self._cache) > self._cache_size:
@@ -210,9 +220,8 @@ class Planner:
         """:func:`grasp.verify.verify` with each grasp's trials spread over the workers: every
         trial takes a worker slot of its own, in turn with other requests' plans (fair share)."""
         from grasp.planner import distinct
-        from grasp.verify import trials, verify
+        from grasp.verify import verify
 
-        plan_trials = trials(seed)
         loop = asyncio.get_running_loop()
 
         def run(jobs):  # called from a worker thread: the trials of one grasp, at once
@@ -221,7 +230,6 @@ class Planner:
             future = asyncio.run_coroutine_threadsafe(_gather(calls), loop)
             return future.result()
 
-        assert len(plan_trials) >= 1
         return await anyio.to_thread.run_sync(
             lambda: verify(None, distinct(ranked), n, support_plane, seed, run=run))
 
