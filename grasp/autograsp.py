@@ -60,7 +60,7 @@ from hands.barrett import FINGERS, JOINT_NAMES
 from hands.barrett.kinematics import rotation_about
 
 if TYPE_CHECKING:
-    from grasp.verify import Verification
+    from grasp_client.wire import Verification
 
 __all__ = [
     "Contact",
@@ -153,7 +153,7 @@ class GraspResult:
     hold_probability : float
         On a table, the planner's estimate that the grasp holds when the object is lifted
         (:mod:`grasp.lift_model`); NaN where it was not estimated.
-    verification : grasp.verify.Verification or None
+    verification : grasp_client.wire.Verification or None
         What lift-testing it on the planned mesh saw (``plan(..., verify=N)``, :mod:`grasp.verify`);
         None when the plan verified nothing.
     """
@@ -201,7 +201,7 @@ class GraspResult:
             else self.hold_probability,
         }
         if self.verification is not None:  # only plans that verified say it
-            out["verification"] = self.verification.as_dict()
+            out["verification"] = dataclasses.asdict(self.verification)
         return out
 
 

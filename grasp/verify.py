@@ -12,7 +12,8 @@ expects to drop included), until one holds in every trial or ``N`` were tried. T
 (:func:`order`): the grasps that held in every trial, then the other successes, those not tried
 (in the ranking's order) before those seen to drop (most trials held first), then the failures.
 A force-closure grasp the lift model expected to drop but that held in every trial becomes a
-success. Each grasp carries what its verification saw (:class:`Verification`).
+success. Each grasp carries what its verification saw (:class:`grasp_client.wire.Verification`,
+the type that travels).
 
 The work is split so that the service can spread one grasp's trials over its planner processes
 and interleave them with other sessions' plans (:mod:`service.planning`): :func:`eligible`
@@ -35,6 +36,7 @@ import trimesh
 
 from grasp.autograsp import GraspResult
 from grasp.table import SupportPlane
+from grasp_client.wire import Verification
 
 #: Lift trials per verified grasp (chosen on training-split objects: docs/grasping.md).
 TRIALS = 2
@@ -87,27 +89,6 @@ class Outcome:
     reason: str
 
 
-@dataclass(frozen=True)
-class Verification:
-    """What the verification saw of one grasp.
-
-    ``tried``: whether it was lift-tested (a grasp ranked below the first that held, or beyond
-    the N tried, was not); ``trials`` and ``held``: how many trials ran and held; ``first_drop``:
-    the reason of the first trial that dropped (None when every trial held)."""
-
-    tried: bool
-    trials: int = 0
-    held: int = 0
-    first_drop: str | None = None
-
-    @property
-    def held_all(self) -> bool:
-        return self.tried and self.held == self.trials
-
-    def as_dict(self) -> dict:
-        return dataclasses.asdict(self)
-
-
 NOT_TRIED = Verification(tried=False)
 
 
@@ -137,7 +118,7 @@ def run_trial(mesh: trimesh.Trimesh, grasp: GraspResult, support_plane: SupportP
     object standing on ``support_plane`` (floating without one). A mesh the lift test refuses
     (not resting on the plane, say) is a drop that says why."""
     from completion.bullet import quiet_fds
-    from grasp.physics import lift_test
+    from grasp.physics.lift import lift_test
 
     try:
         with quiet_fds(1):

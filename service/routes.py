@@ -27,7 +27,6 @@ from grasp_client.wire import (
     Grasp,
     Primitive,
     SupportPlane,
-    Verification,
 )
 from service.deps import Services, ServicesDep, require_token
 from service.inputs import InputError
@@ -319,8 +318,7 @@ def _grasp_out(result, camera_to_world: np.ndarray | None) -> Grasp:
         approach_stop=result.approach_stop,
         hold_probability=None if math.isnan(result.hold_probability)
         else float(result.hold_probability),
-        verification=None if result.verification is None else Verification(
-            **result.verification.as_dict()),
+        verification=result.verification,
         contacts=[Contact(c.link, np.asarray(c.point, dtype=np.float64),
                           np.asarray(c.normal, dtype=np.float64)) for c in result.contacts],
         hand=[Primitive(link, kind, [float(v) for v in size], pose)

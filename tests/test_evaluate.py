@@ -243,7 +243,9 @@ def test_tiny_run_writes_its_reports(tiny_run):
     assert "with the sensor model on" in report and "Tabletop seen from above" in report
     bench = results["grasp_benchmark"]
     assert list(bench) == ["true_mesh", "mvp_1view", "mvp_4views", "single_view_1view",
-                           "registered_fusion_4views"]
+                           "registered_fusion_4views", "true_mesh_verified",
+                           "mvp_1view_verified", "mvp_4views_verified"]
+    assert "Verified rows" in report and "trials held, referee held" in report
     for cell in bench.values():
         assert cell["tested"] == 1 and sum(cell["reasons"].values()) == 1 - cell["held"]
         assert 0 <= cell["ci95"][0] <= cell["held"] <= cell["ci95"][1] <= 1
@@ -255,6 +257,10 @@ def test_tiny_run_writes_its_reports(tiny_run):
         assert isinstance(outcome["held"], bool) and outcome["reason"]
         if "executed_joints_deg" in outcome:  # a grasp was planned and executed
             assert len(outcome["planned_joints_deg"]) == len(outcome["executed_joints_deg"]) == 8
+    for row, outcome in record["rows"].items():  # what the verification saw of the top grasp
+        if row.endswith("_verified") and "executed_joints_deg" in outcome:
+            assert set(outcome["verification"]) == {"tried", "trials", "held", "first_drop"}
+            assert 0 <= outcome["tried"] <= 4
             assert outcome["kind"].split(", ")[0] in ("power", "fingertip")
     records = [r for r in results["per_object"] if r["table"] == "main"]
     assert len(records) == len(CONDITIONS) * 2 * len(ev.ROWS)

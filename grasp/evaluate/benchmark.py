@@ -211,7 +211,7 @@ def run_object(scene: Scene, models: dict, rows, *, candidates: int, seed: int,
             "palm_pose": np.round(world.palm_pose, 6).tolist(),
         }
         if tries:
-            out[row] |= {"verification": world.verification.as_dict(),
+            out[row] |= {"verification": dataclasses.asdict(world.verification),
                          "tried": timings["verified"]}
     return out
 
