@@ -22,7 +22,7 @@ from fastapi.staticfiles import StaticFiles
 from service import errors, inspector, openapi, routes
 from service.deps import Services
 from service.memory import return_freed_memory
-from service.middleware import BodyLimit, TokenGate
+from service.middleware import BodyLimit, QueryOnce, TokenGate
 from service.parsing import BodyParser
 from service.pipeline import Pipeline
 from service.planning import Planner
@@ -52,6 +52,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.include_router(inspector.page_router)  # the inspector page (public)
     app.mount("/static/inspector", StaticFiles(directory=inspector.STATIC), name="inspector")
     app.add_middleware(BodyLimit, max_bytes=settings.max_body_bytes)
+    app.add_middleware(QueryOnce)
     token = None if settings.token is None else settings.token.get_secret_value()
     app.add_middleware(TokenGate, token=token)  # added last: runs first, before the body
     errors.install(app)

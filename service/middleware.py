@@ -1,10 +1,13 @@
 """ASGI middleware in front of every route: the token checked before a body is read
-(:class:`TokenGate`), and the body's size limit (:class:`BodyLimit`)."""
+(:class:`TokenGate`), the body's size limit (:class:`BodyLimit`), and query parameters given
+once (:class:`QueryOnce`)."""
 
 from __future__ import annotations
 
 import logging
 import re
+from collections import Counter
+from urllib.parse import parse_qsl
 
 from fastapi import HTTPException, status
 from fastapi.responses import JSONResponse
@@ -102,3 +105,28 @@ class BodyLimit:
                 raise
             log.info("%s %s: the client left before its body was complete",
                      scope["method"], scope["path"])  # fmt: skip
+
+
+class QueryOnce:
+    """400 for a query parameter given more than once (``?session_id=A&session_id=B``), naming
+    it: a framework keeps one of them silently (the last), so the request would act on a session
+    the client may not have meant. No route takes a list in its query."""
+
+    def __init__(self, app: ASGIApp) -> None:
+        self.app = app
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        query = scope.get("query_string", b"") if scope["type"] == "http" else b""
+        if query:
+            pairs = parse_qsl(query.decode("latin-1"), keep_blank_values=True)
+            repeated = sorted(name for name, n in Counter(k for k, _ in pairs).items() if n > 1)
+            if repeated:
+                names = ", ".join(repeated[:8]) + (", …" if len(repeated) > 8 else "")
+                response = JSONResponse(
+                    {"detail": f"query parameters given more than once: {names[:300]}; give "
+                               "each once"},
+                    status.HTTP_400_BAD_REQUEST,
+                )
+                await response(scope, receive, send)
+                return
+        await self.app(scope, receive, send)

@@ -3,7 +3,8 @@
 ``POST /views`` reads its body itself (off the event loop, :mod:`service.parsing`), so the
 document gets the ViewIn schema added, with ViewIn's own model validator written as JSON Schema
 (exactly one of points, depth with intrinsics, or grid; a support plane needs a camera pose, an
-object label a mask; points in front of the camera) and the limits of this server's settings.
+object label a mask; points in front of the camera) and the limits of this server's settings;
+every operation with query parameters documents the 400 of a parameter given twice.
 """
 
 from __future__ import annotations
@@ -32,6 +33,7 @@ def document(app: FastAPI) -> dict:
         schemas.update(view.pop("$defs", {}))
         schemas["ViewIn"] = _view_schema(view, app.state.settings)
         _match_settings(document, app.state.settings)
+        _repeated_query(document)
         app.openapi_schema = document
     return app.openapi_schema
 
@@ -72,6 +74,18 @@ def _view_schema(view: dict, settings: Settings) -> dict:
             option["items"] = point
             option["maxItems"] = settings.max_points
     return view
+
+
+def _repeated_query(document: dict) -> None:
+    """Every operation with query parameters may answer 400: one of them given twice
+    (:class:`service.middleware.QueryOnce`)."""
+    for methods in document.get("paths", {}).values():
+        for operation in methods.values():
+            if any(p.get("in") == "query" for p in operation.get("parameters", [])):
+                operation.setdefault("responses", {}).setdefault("400", {
+                    "description": "a query parameter given more than once (named in detail)",
+                    "content": {"application/json": {"schema": {
+                        "type": "object", "properties": {"detail": {"type": "string"}}}}}})
 
 
 def _match_settings(document: dict, settings: Settings) -> None:

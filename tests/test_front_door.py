@@ -192,3 +192,25 @@ def test_a_session_deleted_while_it_is_planned_answers_404(slow_planner):
     assert httpx.delete(f"{slow_planner.url}/sessions/{sid}", timeout=60).status_code == 204
     asking.join()
     assert answer[0].status_code == 404, answer[0].text
+
+
+def test_a_query_parameter_given_twice_is_refused(client):
+    """``?session_id=A&session_id=B`` would plan for B silently: 400 naming the parameter."""
+    r = client.get("/grasp?session_id=a&session_id=b&top_k=1")
+    assert r.status_code == 400 and "session_id" in r.json()["detail"], r.text
+    r = client.get("/sessions/x/mesh?format=ply&format=obj")
+    assert r.status_code == 400 and "format" in r.json()["detail"]
+    assert client.get("/grasp?session_id=nobody&top_k=1").status_code == 404  # once: as before
+
+
+def test_a_422_lists_at_most_twenty_errors_and_counts_the_rest(client):
+    """A body of 50,000 empty points got one error each (a 331 MB answer for 8.4 MB); now the
+    first 20 and a count of the rest, a few kilobytes."""
+    from service.errors import MAX_ERRORS
+
+    r = client.post("/views", json={"points": [[]] * 50_000})
+    assert r.status_code == 422
+    detail = r.json()["detail"]
+    assert len(detail) == MAX_ERRORS + 1 and len(r.content) < 64 * 1024
+    assert detail[-1]["type"] == "too_many_errors" and "more errors" in detail[-1]["msg"]
+    assert all(e["loc"][:2] == ["body", "points"] for e in detail[:-1])
