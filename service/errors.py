@@ -13,7 +13,7 @@ from starlette.routing import compile_path
 from completion.mesh import EmptyMeshError
 from completion.stream import NoObjectError
 from service.inputs import InputError
-from service.parsing import BODY_EXPECTED, field_hint
+from service.parsing import BODY_EXPECTED, capped, field_hint
 from service.pipeline import ModelMismatch, TooManyViews
 from service.planning import ClientGone, PlannerBusy
 from service.store import ConcurrentUpdate, SessionNotFound, StoreFull
@@ -69,18 +69,12 @@ _BODY_HINTS = {
 }
 
 
-#: A 422 lists at most this many errors, then one entry counting the rest: a body of a million
-#: bad points otherwise got a million errors back (331 MB for an 8.4 MB body).
-MAX_ERRORS = 20
-
-
 async def _validation_error(request: Request, exc: RequestValidationError) -> JSONResponse:
     """FastAPI's 422, without echoing the (possibly megabytes of) input back, with what was
-    expected where the body is not a JSON object at all, and at most :data:`MAX_ERRORS` errors
-    (then a count of the rest)."""
+    expected where the body is not a JSON object at all, and at most
+    :data:`service.parsing.MAX_ERRORS` errors (then a count of the rest)."""
     detail = []
-    errors = exc.errors()
-    for e in errors[:MAX_ERRORS]:
+    for e in capped(list(exc.errors())):
         kind = e.get("type", "")
         loc = list(e.get("loc", ()))
         msg = e.get("msg", "")
@@ -90,10 +84,6 @@ async def _validation_error(request: Request, exc: RequestValidationError) -> JS
         elif kind in ("model_type", "model_attributes_type", "dict_type") and len(loc) > 1:
             msg = f"{msg}: {field_hint(loc)}"
         detail.append({"loc": loc, "msg": msg[:1000], "type": kind})
-    if len(errors) > MAX_ERRORS:
-        rest = len(errors) - MAX_ERRORS
-        detail.append({"loc": [], "msg": f"and {rest} more errors like these (the first "
-                       f"{MAX_ERRORS} are listed)", "type": "too_many_errors"})
     return JSONResponse({"detail": detail}, status_code=status.HTTP_422_UNPROCESSABLE_CONTENT)
 
 

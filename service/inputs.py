@@ -10,6 +10,7 @@ from __future__ import annotations
 import base64
 import binascii
 import io
+import re
 from dataclasses import dataclass
 
 import numpy as np
@@ -232,7 +233,8 @@ def _png(raw: bytes, loc: tuple[str, ...], modes: tuple[str, ...], expected: str
     try:
         image = Image.open(io.BytesIO(raw), formats=["PNG"])
     except (OSError, SyntaxError, ValueError, Image.DecompressionBombError) as exc:
-        raise InputError(loc, f"{'.'.join(loc[1:])} is not a PNG image ({exc})") from exc
+        reason = re.sub(r"<[^<>]* at 0x[0-9a-fA-F]+>", "the data", str(exc))  # no object reprs
+        raise InputError(loc, f"{'.'.join(loc[1:])} is not a PNG image ({reason})") from exc
     if image.mode not in modes:
         raise InputError(loc, f"{'.'.join(loc[1:])} must be {expected}, got PNG mode {image.mode}")
     return image

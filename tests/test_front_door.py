@@ -206,7 +206,7 @@ def test_a_query_parameter_given_twice_is_refused(client):
 def test_a_422_lists_at_most_twenty_errors_and_counts_the_rest(client):
     """A body of 50,000 empty points got one error each (a 331 MB answer for 8.4 MB); now the
     first 20 and a count of the rest, a few kilobytes."""
-    from service.errors import MAX_ERRORS
+    from service.parsing import MAX_ERRORS
 
     r = client.post("/views", json={"points": [[]] * 50_000})
     assert r.status_code == 422

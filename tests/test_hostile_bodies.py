@@ -38,6 +38,14 @@ def test_numbers_and_encodings_get_messages_that_name_the_problem(server):
     with httpx.Client(base_url=server.url, timeout=60) as client:
         r = _post(client, b'{"points": [[1, 2, ' + b"9" * 5000 + b"]]}")
         assert r.status_code == 400 and "4300 digits" in r.json()["detail"]
+        assert "(points)" in r.json()["detail"]  # the field it stands under
+        r = _post(client, b'{"points": [[0, 0, 0.5]], "object_label": ' + b"9" * 5000 + b"}")
+        assert "(object_label)" in r.json()["detail"]
+        png = {"depth": {"encoding": "png16_mm", "width": 4, "height": 4,
+                         "data": "bm90IGEgcG5n"}, "intrinsics": {"fx": 500, "fy": 500,
+                                                                 "cx": 2, "cy": 2}}
+        r = client.post("/views", json=png)  # "not a png": no object's repr in the message
+        assert r.status_code == 422 and "0x" not in r.text and "BytesIO" not in r.text, r.text
         utf16 = '{"points": [[0, 0, 0.5], [0.01, 0, 0.5], [0, 0.01, 0.5]]}'.encode("utf-16")
         r = _post(client, utf16)
         assert r.status_code == 400 and "not UTF-8" in r.json()["detail"]
