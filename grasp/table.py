@@ -78,19 +78,12 @@ def hand_clearance(plane: SupportPlane, grasp: HandPose) -> float:
 
 def to_upright(plane: SupportPlane) -> np.ndarray:
     """(4, 4) rigid transform from ``plane``'s frame to one where the plane is z = 0 with its
-    normal along +z (the frame a z-up simulation needs): the smallest rotation taking n to +z,
-    then the plane's offset. Exactly the identity for the plane z = 0 itself."""
-    n = plane.normal
-    z = np.array([0.0, 0.0, 1.0])
-    axis, cos = np.cross(n, z), float(n @ z)
-    sin = float(np.linalg.norm(axis))
-    out = np.eye(4)
-    if sin > 1e-12:  # Rodrigues' formula about n × z
-        k = axis / sin
-        skew = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
-        out[:3, :3] = np.eye(3) + sin * skew + (1.0 - cos) * skew @ skew
-    elif cos < 0.0:  # n = −z: half a turn about x
-        out[:3, :3] = np.diag([1.0, -1.0, -1.0])
+    normal along +z (the frame a z-up simulation needs): a rotation taking n to +z
+    (:func:`trimesh.geometry.align_vectors`), then the plane's offset. Exactly the identity for
+    the plane z = 0 itself."""
+    from trimesh.geometry import align_vectors
+
+    out = np.array(align_vectors(plane.normal, [0.0, 0.0, 1.0]), dtype=np.float64)
     out[2, 3] = plane.offset  # z' = n·x + d
     return out
 

@@ -21,13 +21,7 @@ from completion.stream import stored_support_plane
 from grasp.autograsp import pregrasp_pose
 from grasp.planner import palm_touches, too_large
 from grasp.table import hand_primitives
-from grasp_client.wire import (
-    JOINT_NAMES,
-    Contact,
-    Grasp,
-    Primitive,
-    SupportPlane,
-)
+from grasp_client.wire import JOINT_NAMES, Contact, Grasp, Primitive, SupportPlane
 from service.deps import Services, ServicesDep, require_token
 from service.inputs import InputError
 from service.parsing import ParsedView
@@ -197,7 +191,7 @@ async def plan_session(
         return out, mesh, snapshot
     results, seconds, cached = await services.planner.plan(
         mesh.vertices, mesh.faces, n_candidates=n, seed=s.plan_seed, top_k=top_k,
-        support_plane=plane, verify=min(tries, s.max_verify), gone=request.is_disconnected,
+        support_plane=plane, verify=tries, gone=request.is_disconnected,
     )
     await services.io(services.pipeline.store.get, session_id)  # deleted while it was planned: 404
     total = (time.perf_counter() - start) * 1e3

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from pydantic import Field, SecretStr
+from pydantic import Field, SecretStr, model_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 from grasp.planner import AUTOGRASP_BUDGET
@@ -142,3 +142,10 @@ class Settings(BaseSettings):
     planning_processes: bool = Field(
         True, description="plan in worker processes (false: in threads of the server process)"
     )
+
+    @model_validator(mode="after")
+    def _verify_within_its_maximum(self) -> Settings:
+        if self.verify > self.max_verify:
+            raise ValueError(f"GRASP_VERIFY ({self.verify}) must be at most GRASP_MAX_VERIFY "
+                             f"({self.max_verify})")
+        return self

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import dataclasses
 import math
 from collections.abc import Callable
 from pathlib import Path
@@ -137,12 +136,12 @@ def lift_test(
     if approach not in APPROACHES:
         raise ValueError(f"approach must be one of {APPROACHES}, got {approach!r}")
     s = settings
-    upright = np.eye(4)
+    palm = check_pose(grasp.palm_pose)
     if support_plane is not None:  # simulate in the plane's upright frame (z = n·x + d)
         upright = to_upright(support_plane)
-        if not np.array_equal(upright, np.eye(4)):
+        if not np.array_equal(upright, np.eye(4)):  # the plane z = 0 keeps the mesh's bytes
             mesh = mesh.copy().apply_transform(upright)
-            grasp = dataclasses.replace(grasp, palm_pose=upright @ check_pose(grasp.palm_pose))
+            palm = upright @ palm
         gap = float(mesh.bounds[0, 2])
         if abs(gap) > s.plane_tolerance:
             where = "above" if gap > 0 else "below"
@@ -153,7 +152,6 @@ def lift_test(
     table = support_plane is not None
     directions = np.random.default_rng(seed).normal(size=(s.shake_count, 3))
     directions /= np.linalg.norm(directions, axis=1, keepdims=True)
-    palm = check_pose(grasp.palm_pose)
     spread = float(grasp.dofs_deg.spread)
     open_joints = [spread, 0.0, 0.0, spread, 0.0, 0.0, 0.0, 0.0]
     backoff = pregrasp_pose(palm, s.pregrasp_backoff)[:3, 3] - palm[:3, 3]  # (3,) world
