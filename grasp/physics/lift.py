@@ -41,7 +41,8 @@ def _out_and_back(t: float) -> float:
 def _schedule(
     lift: float, shake: bool, directions: np.ndarray, s: LiftSettings
 ) -> list[tuple[str, int, Callable[[float], np.ndarray]]]:
-    """The loaded phases: (name, steps, hand offset (3,) from the grasp pose at time t in it)."""
+    """The loaded phases: (name, steps, hand offset (3,) from where the hand closed, at time t in
+    the phase)."""
     up = np.array([0.0, 0.0, 1.0])
     lift_time = lift / s.lift_speed
     phases: list[tuple[str, float, Callable[[float], np.ndarray]]] = [
@@ -203,14 +204,16 @@ def lift_test(
         contacts = world.n_contacts()
         stops = tuple(f.stop for f in fingers)
         ref_position, ref_rotation = world.object_in_palm()
-        # load: gravity on, support gone
+        # load: gravity on, support gone; the hand lifts from where it closed (a guarded
+        # approach stops short of or past the planned pose: going there first would push)
+        start = offset
         world.hold_object(None)
         world.gravity(True)
         slip, held_s, phase, elapsed = 0.0, None, "held", 0.0
         position, rotation = ref_position, ref_rotation
         for name, n_steps, target in _schedule(lift, shake, directions, s):
             for i in range(n_steps):
-                world.move_hand(target((i + 1) * s.time_step))
+                world.move_hand(start + target((i + 1) * s.time_step))
                 world.hold_spread(spread)
                 world.drive_fingers(fingers)
                 world.step()
