@@ -54,8 +54,10 @@ import numpy as np
 import trimesh
 
 from grasp.collision import CollisionScene, Contact, check_pose
+from grasp.pinch import TABLE_PINCH, close_rising, faces_table, profile, rise
 from grasp.quality import EPSILON_NO_CLOSURE, MU_RUBBER, contacts_quality
 from grasp.table import SupportPlane
+from grasp_client.wire import WristRise
 from hands.barrett import FINGERS, JOINT_NAMES
 from hands.barrett.kinematics import rotation_about
 
@@ -156,6 +158,10 @@ class GraspResult:
     verification : grasp_client.wire.Verification or None
         What lift-testing it on the planned mesh saw (``plan(..., verify=N)``, :mod:`grasp.verify`);
         None when the plan verified nothing.
+    wrist_rise : grasp_client.wire.WristRise or None
+        A table pinch's (:mod:`grasp.pinch`): the palm's rise along its −z against the closing
+        fingers' DOF; ``palm_pose`` is where closing starts, :attr:`end_palm_pose` where it ends
+        (the pose of ``joints_deg`` and ``contacts``). None for every other grasp.
     """
 
     success: bool
@@ -172,6 +178,20 @@ class GraspResult:
     approach_stop: str = "contact"
     hold_probability: float = math.nan
     verification: Verification | None = None
+    wrist_rise: WristRise | None = None
+
+    @property
+    def kind(self) -> str:
+        """"table pinch" (:mod:`grasp.pinch`) or "autograsp" (the palm still while closing)."""
+        return "autograsp" if self.wrist_rise is None else TABLE_PINCH
+
+    @property
+    def end_palm_pose(self) -> np.ndarray:
+        """(4, 4) palm→world where the fingers stopped: ``palm_pose``, or for a table pinch
+        ``palm_pose`` risen by ``wrist_rise.end_m`` along its −z."""
+        if self.wrist_rise is None:
+            return self.palm_pose
+        return _shift(np.asarray(self.palm_pose), -self.wrist_rise.end_m)
 
     def joint(self, name: str) -> float:
         """One joint angle (degrees) by name, e.g. ``result.joint("f3_prox")``."""
@@ -202,6 +222,10 @@ class GraspResult:
         }
         if self.verification is not None:  # only plans that verified say it
             out["verification"] = dataclasses.asdict(self.verification)
+        if self.wrist_rise is not None:  # only table pinches
+            out["kind"] = self.kind
+            out["wrist_rise"] = dataclasses.asdict(self.wrist_rise)
+            out["end_palm_pose"] = self.end_palm_pose.tolist()
         return out
 
 
@@ -333,9 +357,16 @@ def _approach(
 
 
 def _close_finger(
-    search: _Search, knuckle: np.ndarray, finger: str, step: float
+    search: _Search,
+    knuckle: np.ndarray,
+    finger: str,
+    step: float,
+    start: float = 0.0,
+    frozen_j2: float | None = None,
 ) -> tuple[float, float, float, str]:
-    """Close one finger from open. Returns (DOF, J2, J3) in radians and what stopped it."""
+    """Close one finger from DOF ``start`` (radians; open by default), its J2 stopped at
+    ``frozen_j2`` when it broke away already. Returns (DOF, J2, J3) in radians and what stopped
+    it."""
     kin = search.scene.kinematics
     params = kin.params
     ratio = params.distal_ratio
@@ -348,15 +379,18 @@ def _close_finger(
         prox, dist = kin.finger_poses(knuckle, finger, min(q, j2_max), ratio * q)
         return {prox_name: prox, dist_name: dist}
 
-    q, hit = search.first_contact(
-        coupled, 0.0, dof_max, step=step, speed=speed_both, tol=ANGLE_TOL_RAD
-    )
-    if not hit:
-        return q, min(q, j2_max), ratio * q, "limit"
-    if dist_name in hit:
-        return q, min(q, j2_max), ratio * q, "distal"
+    if frozen_j2 is None:
+        q, hit = search.first_contact(
+            coupled, start, dof_max, step=step, speed=speed_both, tol=ANGLE_TOL_RAD
+        )
+        if not hit:
+            return q, min(q, j2_max), ratio * q, "limit"
+        if dist_name in hit:
+            return q, min(q, j2_max), ratio * q, "distal"
+        j2 = min(q, j2_max)
+    else:
+        q, j2 = start, frozen_j2
     # breakaway: J2 frozen, the DOF keeps rising and J3 follows it
-    j2 = min(q, j2_max)
     prox_pose, _ = kin.finger_poses(knuckle, finger, j2, 0.0)
     j3_frame = prox_pose @ kin.joint(dist_name).origin
     turn = rotation_about(kin.joint(dist_name).axis)
@@ -368,6 +402,51 @@ def _close_finger(
         distal_only, q, dof_max, step=step, speed=speed_distal, tol=ANGLE_TOL_RAD
     )
     return q2, j2, ratio * q2, "breakaway-distal" if hit2 else "breakaway-limit"
+
+
+def _close_pinching(
+    search: _Search, palm: np.ndarray, spread: float, step: float
+) -> tuple[np.ndarray, list[tuple[float, float, float, str]], WristRise]:
+    """Close a table pinch (:mod:`grasp.pinch`) from ``palm``: the lock-step phase with the palm
+    rising, then each finger that touched closes on from where it stopped (the palm where the
+    rise ended). Returns the palm where closing ended, (DOF, J2, J3, stop) per finger (radians)
+    and the rise."""
+    kin = search.scene.kinematics
+    params = kin.params
+    ratio = params.distal_ratio
+    dof_max = math.radians(params.finger_dof_max_deg)
+    j2_max = math.radians(params.proximal_max_deg)
+    knuckles = {f: kin.knuckle_pose(f, math.radians(spread)) for f in FINGERS}
+
+    def poses_at(dof: float, moving: dict[str, tuple[str, float]], floor: float):
+        lifted, out = _shift(palm, -max(float(rise(math.degrees(dof), params)), floor)), {}
+        for f, (mode, j2) in moving.items():
+            coupled = mode == "coupled"
+            prox, dist = kin.finger_poses(lifted @ knuckles[f], f,
+                                          min(dof, j2_max) if coupled else j2, ratio * dof)
+            if coupled:  # a broken-away proximal rests on the object, only the distal closes
+                out[f"{f}_prox"] = prox
+            out[f"{f}_dist"] = dist
+        return out
+
+    dofs, rises = profile(params)
+    slope = float(np.max(np.abs(np.diff(rises)) / np.radians(np.diff(dofs))))  # m per rad
+    speed = max(_speed_bounds(search.scene, f)[0] for f in FINGERS) + slope
+    stopped = close_rising(poses_at, search.first_contact, dof_max=dof_max, j2_max=j2_max,
+                           step=step, speed=speed, tol=ANGLE_TOL_RAD)
+    end = max(float(rise(math.degrees(q), params)) for _, q, _ in stopped.values())
+    lifted = _shift(palm, -end)
+    fingers = []
+    for f in FINGERS:
+        stop, q, j2 = stopped[f]
+        if stop.endswith("distal"):  # still driven: it closes on to the object, if the palm's
+            # motion took it off (the palm now still)
+            frozen = j2 if stop.startswith("breakaway") else None
+            fingers.append(_close_finger(search, lifted @ knuckles[f], f, step, q, frozen))
+        else:
+            fingers.append((q, j2, ratio * q, stop))
+    wrist = WristRise(dofs.tolist(), rises.tolist(), end)
+    return lifted, fingers, wrist
 
 
 # -- public API ------------------------------------------------------------------------------------
@@ -383,6 +462,7 @@ def autograsp(
     mu: float = MU_RUBBER,
     quality: bool = True,
     support_plane: SupportPlane | None = None,
+    pinch: bool = False,
 ) -> GraspResult:
     """Approach the object along the palm's +z and close the BarrettHand on it (GraspIt! rules).
 
@@ -409,6 +489,12 @@ def autograsp(
     support_plane : SupportPlane or None
         The table (world frame): an obstacle for the approach and the fingers. Default: the
         scene's own (none for a mesh).
+    pinch : bool
+        A table pinch (:mod:`grasp.pinch`): the palm faces the table (+z along −n) and rises while
+        the fingers close, keeping the tips on the table. Needs a support plane. ``max_travel``
+        should end the approach where the open hand's lowest point is
+        :data:`grasp.pinch.TIP_CLEARANCE_M` above the table: an approach that touches the object
+        first is a failure (too tall to pinch from there).
 
     Returns
     -------
@@ -423,6 +509,9 @@ def autograsp(
         raise ValueError(f"max_travel must be a finite distance >= 0, got {max_travel}")
     if not approach_step > 0.0 or not close_step_deg > 0.0:
         raise ValueError("approach_step and close_step_deg must be positive")
+    if pinch and (scene.support_plane is None or not faces_table(palm, scene.support_plane)):
+        raise ValueError("a table pinch needs a support plane and the palm facing it "
+                         "(palm +z along the plane's −n)")
     spread = math.radians(spread_deg)
     open_rad = np.radians([spread_deg, 0, 0, spread_deg, 0, 0, 0, 0])
     search = _Search(scene)
@@ -441,12 +530,24 @@ def autograsp(
             )
         palm, travel, touched = moved
         approach_stop = "contact" if touched else "limit"
+        if pinch and touched:
+            return GraspResult(
+                False,
+                "table pinch: the open hand touched the object before its fingertips were down "
+                "at the table (too tall to pinch from here)",
+                palm, HandJoints(*np.degrees(open_rad)), HandDofs(spread_deg, 0.0, 0.0, 0.0),
+                travel=travel, approach_stop=approach_stop,
+            )
 
     step = math.radians(close_step_deg)
+    start, wrist_rise = palm, None
+    if pinch:
+        palm, closed, wrist_rise = _close_pinching(search, start, spread_deg, step)
+    else:
+        closed = [_close_finger(search, palm @ scene.kinematics.knuckle_pose(finger, spread),
+                                finger, step) for finger in FINGERS]
     dofs, joints, stops = [], {}, []
-    for finger in FINGERS:
-        knuckle = palm @ scene.kinematics.knuckle_pose(finger, spread)
-        q, j2, j3, stop = _close_finger(search, knuckle, finger, step)
+    for finger, (q, j2, j3, stop) in zip(FINGERS, closed, strict=True):
         dofs.append(math.degrees(q))
         joints[f"{finger}_prox"], joints[f"{finger}_dist"] = math.degrees(j2), math.degrees(j3)
         stops.append(stop)
@@ -455,10 +556,13 @@ def autograsp(
 
     link_poses = scene.hand_link_poses(palm, np.radians(hand_joints))
     contacts = tuple(scene.contacts(link_poses))
+    reason = _NOT_SCORED if contacts else _NO_CONTACT
+    if pinch and scene.colliding_links(link_poses):
+        reason = "table pinch: the rising palm pulled a finger into the object (an overhang)"
     result = GraspResult(
         success=False,
-        reason=_NOT_SCORED if contacts else _NO_CONTACT,
-        palm_pose=palm,
+        reason=reason,
+        palm_pose=start,
         joints_deg=hand_joints,
         dofs_deg=HandDofs(spread_deg, *dofs),
         contacts=contacts,
@@ -467,7 +571,10 @@ def autograsp(
         travel=travel,
         finger_stops=tuple(stops),
         approach_stop=approach_stop,
+        wrist_rise=wrist_rise,
     )
+    if reason != _NOT_SCORED and contacts:  # a failure whatever the contacts' quality
+        return dataclasses.replace(result, epsilon=EPSILON_NO_CLOSURE, volume=0.0)
     return with_quality(result, scene, mu=mu) if quality else result
 
 

@@ -24,6 +24,7 @@ import numpy as np
 import trimesh
 
 from grasp.collision import check_mesh, fibonacci_directions
+from grasp.pinch import TABLE_PINCH, TIP_CLEARANCE_M, pinch_height
 from grasp.screen import finger_reach, open_hand_lowest
 from grasp.table import SupportPlane
 
@@ -44,7 +45,8 @@ class Candidate:
 
     palm_pose: np.ndarray
     spread_deg: float
-    source: str  # "principal", "sphere", or with a support plane "top" or "pinch"
+    source: str  # "principal", "sphere", or with a support plane "top", "pinch" (fingertips,
+    # the palm still) or "table pinch" (the palm rising, grasp.pinch)
     travel: float | None = None  # longest approach (metres); None: the planner's
 
 
@@ -147,8 +149,11 @@ def table_candidates(
 ) -> list[Candidate]:
     """``n_candidates`` pre-grasp poses around ``mesh`` resting on ``plane``: top-down ones
     (palm +z against the normal, fingers across each axis of the footprint, spreads 0° and 60°);
-    for an object lower than the fingers' reach, fingertip ones (the same, the approach ending
-    where the closing tips sweep just over the table); then :func:`candidate_poses`'s that do
+    for an object lower than the palm of a table pinch (:func:`grasp.pinch.pinch_height`), table
+    pinches (the same, the approach ending with the open hand's lowest point
+    :data:`grasp.pinch.TIP_CLEARANCE_M` above the table); for an object lower than the fingers'
+    reach, fingertip ones (the same, the approach ending where the closing tips sweep just over
+    the table); then :func:`candidate_poses`'s that do
     not approach from below. Every open hand starts clear of the table (:func:`_clear_of_table`;
     ``travel``: the others' approach, metres)."""
     check_mesh(mesh)
@@ -159,6 +164,11 @@ def table_candidates(
     axes = _footprint_axes(mesh, plane)[::-1]  # across the narrow side first
     tops = [(_palm_pose(-plane.normal, a, center, distance), s) for a in axes for s in (0.0, 60.0)]
     out = [Candidate(pose, spread, "top") for pose, spread in tops]
+    if plane.height(mesh.vertices).max() < pinch_height():  # table pinches (grasp.pinch)
+        palms = np.stack([pose for pose, _ in tops])
+        reach = open_hand_lowest(plane, palms, np.array([s for _, s in tops])) - TIP_CLEARANCE_M
+        out += [Candidate(pose, spread, TABLE_PINCH, float(travel))
+                for (pose, spread), travel in zip(tops, reach, strict=True)]
     pinch = finger_reach() + PINCH_CLEARANCE_M  # palm face height of a fingertip grasp
     if plane.height(mesh.vertices).max() < pinch:
         for pose, spread in tops:
@@ -169,8 +179,9 @@ def table_candidates(
                            spreads_deg=spreads_deg, standoff=standoff)
     out += [c for c in pool if c.palm_pose[:3, 2] @ plane.normal <= 1e-9]
     unique: dict[tuple, Candidate] = {}  # a top-down candidate may also be a principal one
-    for c in out:
-        unique.setdefault((c.spread_deg, (np.round(c.palm_pose, 9) + 0.0).tobytes()), c)
+    for c in out:  # (a table pinch starts where a top-down grasp does, and is another grasp)
+        key = (c.source == TABLE_PINCH, c.spread_deg, (np.round(c.palm_pose, 9) + 0.0).tobytes())
+        unique.setdefault(key, c)
     return _clear_of_table(list(unique.values())[:n_candidates], plane, travel)
 
 

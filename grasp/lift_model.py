@@ -67,7 +67,7 @@ def features(result, mesh, plane: SupportPlane, *, mass: float | None = None) ->
     heights = np.array([float((c.point - center) @ up) for c in result.contacts] or [0.0])
     fingers = {c.link[:2] for c in result.contacts if c.link.startswith("f")}
     fe = max(float(result.force_epsilon), 1e-3)
-    pose = np.asarray(result.palm_pose)
+    pose = np.asarray(result.end_palm_pose)  # where the hand closed (a table pinch rose)
     return np.array([
         math.log10(max(mass, 1e-4)),
         math.log10(max(mass, 1e-4) * GRAVITY / (fe * GRIP_N)),

@@ -45,6 +45,7 @@ from grasp.candidates import (
     table_candidates,
 )
 from grasp.collision import CollisionScene, check_mesh
+from grasp.pinch import TABLE_PINCH
 from grasp.screen import Screen, fingertip_span
 from grasp.table import SupportPlane, crosses
 from grasp.verify import DEFAULT_VERIFY, VerifySettings, describe
@@ -106,7 +107,7 @@ def too_large(mesh: trimesh.Trimesh) -> str | None:
 
 def depth_of(result: GraspResult, center: np.ndarray) -> float:
     """Distance (m) from the palm to the object's centre of mass along the approach axis."""
-    pose = np.asarray(result.palm_pose)
+    pose = np.asarray(result.end_palm_pose)
     return float((np.asarray(center) - pose[:3, 3]) @ pose[:3, 2])
 
 
@@ -223,9 +224,8 @@ def plan(
     for i in order:
         c = candidates[i]
         limit = travel if c.travel is None else c.travel
-        result = autograsp(
-            scene, c.palm_pose, spread_deg=c.spread_deg, max_travel=limit, quality=False
-        )
+        result = autograsp(scene, c.palm_pose, spread_deg=c.spread_deg, max_travel=limit,
+                           quality=False, pinch=c.source == TABLE_PINCH)
         if support_plane is None or not crosses(support_plane, result):
             results.append(result)
     lap("autograsp")
@@ -272,7 +272,7 @@ def screen_order(scene: CollisionScene, candidates: Sequence[Candidate], travel:
         scene.mesh, spacing=SCREEN_SPACING_M, nearest=True, support_plane=scene.support_plane
     )
     touches, palm, depth = screen.predict(palms, spreads, travel, scene.center)
-    pinch = np.array([c.source == "pinch" for c in candidates])
+    pinch = np.array([c.source in ("pinch", TABLE_PINCH) for c in candidates])
     touches |= pinch  # a fingertip grasp stops above a low object: its fingers meet it
     plane = scene.support_plane
     flat = plane is not None and plane.height(scene.mesh.vertices).max() < PINCH_FIRST_HEIGHT_M

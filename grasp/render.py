@@ -67,7 +67,7 @@ def render_grasp(
         raise ValueError(f"image size must be at least 16×16, got {width}×{height}")
     images = []
     with GraspWorld(mesh) as world:
-        world.set_hand(result.palm_pose, result.joints_deg)
+        world.set_hand(result.end_palm_pose, result.joints_deg)
         hand = np.array([pose[:3, 3] for pose in world.link_poses().values()])
         points = np.vstack([mesh.bounds, hand, hand + 0.06 * result.palm_pose[:3, 2]])
         for eye, target, up in _views(points, np.asarray(result.palm_pose)):

@@ -32,14 +32,15 @@ _KINEMATICS = HandKinematics()
 class HandPose(Protocol):
     """What the functions below read of a grasp (a :class:`grasp.autograsp.GraspResult`)."""
 
-    palm_pose: np.ndarray  # (4, 4) palm→world
+    end_palm_pose: np.ndarray  # (4, 4) palm→world where the fingers closed
     joints_deg: Sequence[float]  # in hands.barrett.JOINT_NAMES order
 
 
 def _link_poses(grasp: HandPose) -> dict[str, np.ndarray]:
     """Every link's (4, 4) link→world pose in ``grasp``, by the hand's kinematics."""
     joints = np.radians(np.asarray(grasp.joints_deg, dtype=np.float64))
-    return {link: grasp.palm_pose @ pose for link, pose in _KINEMATICS.link_poses(joints).items()}
+    palm = np.asarray(grasp.end_palm_pose)
+    return {link: palm @ pose for link, pose in _KINEMATICS.link_poses(joints).items()}
 
 
 def hand_primitives(grasp: HandPose) -> list[tuple[str, str, tuple[float, ...], np.ndarray]]:

@@ -297,6 +297,7 @@ def _grasps_out(
 def _grasp_out(result, camera_to_world: np.ndarray | None) -> Grasp:
     palm = np.asarray(result.palm_pose, dtype=np.float64)
     before = pregrasp_pose(palm)
+    end = np.asarray(result.end_palm_pose, dtype=np.float64)
     world = None if camera_to_world is None else np.asarray(camera_to_world, dtype=np.float64)
     return Grasp(
         palm_pose=palm,
@@ -317,4 +318,8 @@ def _grasp_out(result, camera_to_world: np.ndarray | None) -> Grasp:
                           np.asarray(c.normal, dtype=np.float64)) for c in result.contacts],
         hand=[Primitive(link, kind, [float(v) for v in size], pose)
               for link, kind, size, pose in hand_primitives(result)],
+        kind=result.kind,
+        wrist_rise=result.wrist_rise,
+        end_palm_pose=end,
+        end_palm_pose_world=None if world is None else world @ end,
     )

@@ -20,6 +20,7 @@ from scipy.spatial.transform import Rotation
 from grasp.autograsp import autograsp
 from grasp.candidates import TABLE_CLEARANCE_M, table_candidates
 from grasp.collision import CollisionScene
+from grasp.pinch import pinch_height
 from grasp.planner import plan
 from grasp.screen import Screen, finger_reach, open_hand_lowest
 from grasp.table import TABLE_TOL_M, SupportPlane, hand_clearance, hand_primitives
@@ -193,10 +194,13 @@ def test_table_candidates_top_down_and_fingertip_none_from_below_all_clear():
     box = low_box()
     cands = table_candidates(box, FLOOR, n_candidates=40, seed=0)
     assert len(cands) == 40
-    assert [c.source for c in cands[:8]] == ["top"] * 4 + ["pinch"] * 4
-    for c in cands[:8]:
+    assert [c.source for c in cands[:12]] == ["top"] * 4 + ["table pinch"] * 4 + ["pinch"] * 4
+    for c in cands[:12]:
         np.testing.assert_allclose(c.palm_pose[:3, 2], [0.0, 0.0, -1.0], atol=1e-12)
-    for c in cands[4:8]:  # the palm stops where the closing tips sweep just over the table
+    for c in cands[4:8]:  # table pinches: the open hand stops 2 mm above the table
+        stop = c.palm_pose[2, 3] - c.travel
+        assert stop == pytest.approx(pinch_height(), abs=1e-12)
+    for c in cands[8:12]:  # the palm stops where the closing tips sweep just over the table
         stop = c.palm_pose[2, 3] - c.travel
         assert stop == pytest.approx(finger_reach() + 0.004, abs=1e-12)
     assert finger_reach() == pytest.approx(0.1136, abs=1e-4)
@@ -209,7 +213,8 @@ def test_table_candidates_top_down_and_fingertip_none_from_below_all_clear():
                                                                          strict=True))
     tall = trimesh.creation.box((0.06, 0.06, 0.2))
     tall.apply_translation([0.0, 0.0, 0.1])
-    assert "pinch" not in {c.source for c in table_candidates(tall, FLOOR, n_candidates=40)}
+    assert not {"pinch", "table pinch"} & {c.source for c in table_candidates(tall, FLOOR,
+                                                                             n_candidates=40)}
 
 
 # -- the planner -----------------------------------------------------------------------------------

@@ -159,10 +159,13 @@ def completion_mesh(scene: Scene, source: str, views: int, models: dict):
 
 
 def grasp_kind(grasp, up: np.ndarray = TABLE[:3]) -> str:
-    """"power" (the palm touches) or "fingertip", "from above" (within 45° of straight down) or
-    "from the side"."""
+    """"table pinch" (:mod:`grasp.pinch`), or "power" (the palm touches) or "fingertip", "from
+    above" (within 45° of straight down) or "from the side"."""
+    from grasp.pinch import TABLE_PINCH
     from grasp.planner import palm_touches
 
+    if grasp.kind == TABLE_PINCH:
+        return TABLE_PINCH
     above = float(-np.asarray(grasp.palm_pose)[:3, 2] @ up) >= np.cos(np.radians(45.0))
     return (f"{'power' if palm_touches(grasp) else 'fingertip'}, "
             f"{'from above' if above else 'from the side'}")

@@ -191,9 +191,13 @@ def lift_test(
                 world.move_hand(offset)
                 break
         travel = float(np.dot(offset - backoff, palm[:3, 2]))
-        # close
+        # close; a table pinch's palm rises with the closing fingers' DOF (grasp.pinch)
+        rising, up, carriage = grasp.wrist_rise, -palm[:3, 2], offset
         steps, settle_left = 0, round(s.close_settle / s.time_step)
         while steps * s.time_step < s.close_timeout and settle_left > 0:
+            if rising is not None:
+                carriage = offset + max(rising.at(q) for q in world.finger_dofs_deg()) * up
+                world.move_hand(carriage)
             world.hold_spread(spread)
             world.drive_fingers(fingers)
             world.step()
@@ -201,12 +205,13 @@ def lift_test(
             if all(f.done for f in fingers):
                 settle_left -= 1
         joints_deg = world.joint_values_deg()
+        rose = float(np.dot(world.hand_offset() - offset, up))
         contacts = world.n_contacts()
         stops = tuple(f.stop for f in fingers)
         ref_position, ref_rotation = world.object_in_palm()
         # load: gravity on, support gone; the hand lifts from where it closed (a guarded
         # approach stops short of or past the planned pose: going there first would push)
-        start = offset
+        start = carriage
         world.hold_object(None)
         world.gravity(True)
         slip, held_s, phase, elapsed = 0.0, None, "held", 0.0
@@ -253,4 +258,5 @@ def lift_test(
         mass=world.mass,
         contacts=contacts,
         travel=travel,
+        rise=rose,
     )

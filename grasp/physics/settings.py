@@ -131,6 +131,9 @@ class LiftResult:
     travel : float
         How far (m) the palm was moved along its approach axis from the pre-grasp pose before the
         fingers closed (``pregrasp_backoff`` for the "planned" approach).
+    rise : float
+        How far (m) the palm rose while the fingers closed: a table pinch's (``grasp.wrist_rise``,
+        followed by the fingers' DOFs), 0 for other grasps.
     """
 
     success: bool
@@ -147,6 +150,7 @@ class LiftResult:
     mass: float
     contacts: int
     travel: float
+    rise: float = 0.0
 
     def as_dict(self) -> dict:
         """JSON-ready dictionary (lists instead of arrays)."""

@@ -225,6 +225,15 @@ class DynamicWorld:
         indices = [self.joints[name].index for name in JOINT_NAMES]
         return np.degrees([s[0] for s in self.client.getJointStates(self.hand_id, indices)])
 
+    def finger_dofs_deg(self) -> np.ndarray:
+        """(3,) each finger's DOF (degrees) as its motor encoder reads it: J2, or J3 / ratio once
+        J3 ran ahead (after a breakaway)."""
+        states = self.client.getJointStates(
+            self.hand_id, [self.joints[f"{f}_{j}"].index for f in FINGERS for j in ("prox", "dist")]
+        )
+        angles = np.reshape([s[0] for s in states], (len(FINGERS), 2))
+        return np.degrees(np.maximum(angles[:, 0], angles[:, 1] / self.params.distal_ratio))
+
     def n_contacts(self) -> int:
         """Number of hand–object contact points."""
         return len(self.client.getContactPoints(self.hand_id, self.object_id))

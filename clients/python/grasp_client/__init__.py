@@ -13,7 +13,8 @@ from grasp_client.client import (
     SessionGone,
     Unauthorized,
 )
-from grasp_client.wire import JOINT_NAMES, Contact, Grasp, Primitive, SupportPlane, Verification
+from grasp_client.wire import (JOINT_NAMES, Contact, Grasp, Primitive, SupportPlane, Verification,
+                               WristRise)
 
 __version__ = "0.2.0"
 
@@ -30,5 +31,6 @@ __all__ = [
     "SessionGone",
     "SupportPlane",
     "Verification",
+    "WristRise",
     "Unauthorized",
 ]

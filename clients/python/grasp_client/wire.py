@@ -276,6 +276,29 @@ class Verification:
 
 
 @dataclass(frozen=True, eq=False)
+class WristRise:
+    """How the palm of a table pinch rises while its fingers close: a table of the rise
+    (metres, along the support plane's normal, i.e. the palm's −z) against the closing fingers'
+    DOF (degrees; a robot reads it from the hand), linear between entries, from the hand's
+    geometry; and the rise where the planned closing ends (``end_palm_pose``)."""
+
+    dof_deg: Annotated[list[float], Doc("finger DOF (motor angle in J2 units), increasing")]
+    rise_m: Annotated[list[float], Doc("palm rise at each DOF, metres, never decreasing")]
+    end_m: Annotated[float, Doc("the rise where the planned closing ends, metres")]
+
+    def at(self, dof_deg: float) -> float:
+        """The rise (metres) at ``dof_deg`` (linear between entries, constant past the last)."""
+        return float(np.interp(dof_deg, self.dof_deg, self.rise_m))
+
+    @classmethod
+    def from_json(cls, w: Mapping[str, Any]) -> WristRise:
+        dofs, rises = [float(v) for v in w["dof_deg"]], [float(v) for v in w["rise_m"]]
+        if not dofs or len(dofs) != len(rises):
+            raise ValueError("wrist_rise needs as many rises as DOFs, at least one")
+        return cls(dofs, rises, float(w["end_m"]))
+
+
+@dataclass(frozen=True, eq=False)
 class Grasp:
     """One planned grasp. Poses are 4×4 float64 arrays; ``joints_deg`` the 8 joints by name in
     degrees (``joint_array``: the same in :data:`JOINT_NAMES` order)."""
@@ -311,8 +334,18 @@ class Grasp:
     verification: Annotated[Verification | None, Doc(
         "with verify > 0, what the lift trials on the completion saw; null without")] = None
     hand: Annotated[list[Primitive], Doc(
-        "the hand at this grasp as collision primitives placed by its kinematics")] = field(
-        default_factory=list)
+        "the hand at this grasp (where its fingers closed) as collision primitives placed by "
+        "its kinematics")] = field(default_factory=list)
+    kind: Annotated[Literal["autograsp", "table pinch"], Doc(
+        "'autograsp': the palm stays at palm_pose while the fingers close; 'table pinch': the "
+        "palm faces the table and rises (wrist_rise) while the fingers close, their tips on the "
+        "table (docs/service.md, 'Executing a table pinch')")] = "autograsp"
+    wrist_rise: Annotated[WristRise | None, Doc(
+        "a table pinch's palm rise against the fingers' DOF; null for an autograsp")] = None
+    end_palm_pose: Annotated[np.ndarray | None, Array(
+        (4, 4), "4×4 palm→camera where closing ends: palm_pose, risen for a table pinch")] = None
+    end_palm_pose_world: Annotated[np.ndarray | None, Array(
+        (4, 4), "the same palm→world, when the latest view came with a camera_pose")] = None
 
     @property
     def joints(self) -> dict[str, float]:
@@ -343,6 +376,10 @@ class Grasp:
             verification=None if g.get("verification") is None
             else Verification.from_json(g["verification"]),
             hand=[Primitive.from_json(p) for p in g.get("hand", ())],
+            kind=g.get("kind", "autograsp"),
+            wrist_rise=None if g.get("wrist_rise") is None
+            else WristRise.from_json(g["wrist_rise"]),
+            end_palm_pose=pose("end_palm_pose"), end_palm_pose_world=pose("end_palm_pose_world"),
         )
 
 

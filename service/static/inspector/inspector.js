@@ -59,6 +59,23 @@ function handGroup(grasp) {
     }
     const material = new THREE.MeshStandardMaterial({ ...HAND, transparent: true });
     group.add(place(new THREE.Mesh(geometry, material), prim.pose));
+    if (grasp.kind === 'table pinch' && prim.link === 'palm') {
+      // a table pinch closes while the palm rises: its palm where closing starts, as an
+      // outline, and the rise from there to where the hand is drawn (where closing ends)
+      const start = prim.pose.map((row) => row.slice());
+      for (let i = 0; i < 3; i += 1) {
+        start[i][3] += grasp.palm_pose[i][3] - grasp.end_palm_pose[i][3];
+      }
+      const outline = new THREE.LineSegments(new THREE.EdgesGeometry(geometry),
+        new THREE.LineBasicMaterial({ color: 0x2a6fdb, transparent: true }));
+      group.add(place(outline, start));
+    }
+  }
+  if (grasp.kind === 'table pinch') {
+    const ends = [grasp.palm_pose, grasp.end_palm_pose]
+      .map((m) => new THREE.Vector3(m[0][3], m[1][3], m[2][3]));
+    group.add(new THREE.Line(new THREE.BufferGeometry().setFromPoints(ends),
+      new THREE.LineBasicMaterial({ color: 0x2a6fdb, transparent: true })));
   }
   return group;
 }
@@ -85,6 +102,10 @@ function describe(grasp, index) {
   item.querySelector('.joints').textContent = joints;
   // what the ranking expects of the lift, and what the lift trials on the completion saw
   const said = [];
+  if (grasp.kind === 'table pinch') {
+    said.push(`table pinch: the palm rises ${(1000 * grasp.wrist_rise.end_m).toFixed(0)} mm ` +
+      'while the fingers close (outline: where closing starts)');
+  }
   if (grasp.hold_probability !== null && grasp.hold_probability !== undefined) {
     said.push(`hold probability ${grasp.hold_probability.toFixed(2)}`);
   }
@@ -179,6 +200,7 @@ async function main() {
 
   function select(index) {
     hands.forEach((hand, i) => hand.traverse((child) => {
+      if (child.isLine) child.material.opacity = i === index ? 1.0 : 0.12;
       if (child.isMesh) {
         child.material.opacity = i === index ? 1.0 : 0.12;
         child.material.depthWrite = i === index;

@@ -1,0 +1,150 @@
+"""The table pinch: fingertips that slide in along the table while the wrist rises.
+
+A flat object (a plate, a coin, a hammer lying down) is lower than where a closing finger of
+the BarrettHand sweeps over the table, so an ordinary grasp from above closes over it. A person,
+or a hand on an arm, pinches it instead: the fingertips are put down beside it on the table and
+the fingers close while the wrist rises just enough to keep the tips on the table, so that they
+slide in under and around the object (Eppner et al., "Exploitation of environmental constraints
+in human and robotic grasping", 2015; Erdogan, Schröder and Brock, "Coordination of intrinsic
+and extrinsic degrees of freedom in soft robotic grasping").
+
+The motion, as the planner plans it and the lift test executes it:
+
+1. The open hand faces the table (palm +z along −n, the plane's normal) and goes down until
+   its lowest point is :data:`TIP_CLEARANCE_M` above the table (at DOF 0 that is the distal
+   links' outer edges: the BH8-282's distal links are bent 40° toward the palm).
+2. The fingers close, all three at the same commanded DOF, and the palm moves along n so that
+   the hand's deepest point stays where it started: its rise is the largest of :func:`rise`
+   (DOF) over the three fingers, :func:`rise` being how much deeper below the palm face a
+   finger at that DOF reaches than an open one. The palm goes up by 70 mm while the fingers
+   close to 65° (the tips sweep in from 16 cm to 5 cm from the palm's axis) and back down by 15
+   mm by 90° (the tips meet under the palm): the tips stay :data:`TIP_CLEARANCE_M` above the
+   table, and no link, a stopped finger's included, goes below them.
+3. A finger that touches the object stops (Barrett rules, breakaway included); its DOF, and so
+   its share of the rise, stays where it stopped; when all have stopped the palm stops too. A
+   stopped finger keeps its motor's torque: when the palm's motion takes its link off the
+   object, it closes on until it touches again.
+
+The rise is a function of the fingers' DOFs alone, from the hand's geometry: a robot runs it as
+a synchronised trajectory (wrist height against the DOFs it reads from the hand), which needs no
+force sensing; :func:`profile` is the table it interpolates (docs/service.md, "Executing a table
+pinch"). The alternative, pressing the wrist down with a force limit and letting the table push
+it up, needs a force-controlled arm and depends on the table's friction; it is not modelled.
+
+This module must not import torch (docs/design.md §2).
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+from collections.abc import Callable
+
+import numpy as np
+
+from grasp.table import SupportPlane
+from hands.barrett import BH8_282, FINGERS, BarrettParams, HandKinematics
+
+__all__ = ["PROFILE_STEP_DEG", "TABLE_PINCH", "TIP_CLEARANCE_M", "close_rising", "depth",
+           "faces_table", "pinch_height", "profile", "rise"]
+
+#: The grasp kind (``GraspResult.kind``, the wire's ``kind``).
+TABLE_PINCH = "table pinch"
+#: The open hand's lowest point starts this far above the table, and the closing fingertips
+#: sweep this far above it (metres): under the 1 cm a plate stands, over a table's unevenness.
+TIP_CLEARANCE_M = 0.002
+#: Spacing of the rise profile's samples in finger DOF (degrees); the rise between two is linear.
+PROFILE_STEP_DEG = 2.5
+#: The palm must face the table this exactly (cosine of the angle between +z and −n).
+FACING_TOL = 1e-6
+
+
+def faces_table(palm_pose: np.ndarray, plane: SupportPlane) -> bool:
+    """Whether the palm's +z points straight down ``plane``'s normal (the pinch's posture)."""
+    return float(np.asarray(palm_pose)[:3, 2] @ plane.normal) <= -1.0 + FACING_TOL
+
+
+def pinch_height(params: BarrettParams = BH8_282) -> float:
+    """Height (m) of the palm face above the table where a table pinch starts closing: objects
+    lower than this get table pinch candidates (:func:`grasp.candidates.table_candidates`)."""
+    return depth(0.0, params) + TIP_CLEARANCE_M
+
+
+def depth(dof_rad: float, params: BarrettParams = BH8_282) -> float:
+    """Depth (m) below the palm face of the hand's deepest point with every finger at
+    ``dof_rad`` (J2 = DOF up to its limit, J3 = DOF / 3), at any spread."""
+    kinematics = _kinematics(params)
+    j2, j3 = min(dof_rad, math.radians(params.proximal_max_deg)), params.distal_ratio * dof_rad
+    links = kinematics.link_poses(np.array([0.0, j2, j3, 0.0, j2, j3, j2, j3]))
+    below = SupportPlane(np.array([0.0, 0.0, -1.0]), 0.0)  # height = −depth in the palm frame
+    return max(-float(below.lowest(p.kind, p.size, links[p.link] @ p.pose))
+               for p in kinematics.primitives)
+
+
+@functools.lru_cache(maxsize=8)
+def profile(params: BarrettParams = BH8_282) -> tuple[np.ndarray, np.ndarray]:
+    """The rise table: (k,) finger DOFs (degrees, every :data:`PROFILE_STEP_DEG` from 0 to the
+    DOF's maximum) and (k,) palm rises (m) along the table's normal, :func:`depth` less the open
+    hand's; rise(0) = 0. Between samples the rise is linear (:func:`rise`): within 0.1 mm of the
+    exact curve (tests), well inside :data:`TIP_CLEARANCE_M`."""
+    top = params.finger_dof_max_deg
+    dofs = np.append(np.arange(0.0, top, PROFILE_STEP_DEG), top)
+    deepest = np.array([depth(math.radians(q), params) for q in dofs])
+    return dofs, deepest - deepest[0]
+
+
+def rise(dof_deg: float | np.ndarray, params: BarrettParams = BH8_282) -> float | np.ndarray:
+    """The palm rise (m) along the table's normal that a finger at ``dof_deg`` needs; the palm
+    takes the largest of its fingers'."""
+    return np.interp(dof_deg, *profile(params))
+
+
+def close_rising(
+    poses_at: Callable[[float, dict[str, tuple[str, float]], float], dict[str, np.ndarray]],
+    first_contact: Callable[..., tuple[float, list[str]]],
+    *,
+    dof_max: float,
+    j2_max: float,
+    step: float,
+    speed: float,
+    tol: float,
+) -> dict[str, tuple[str, float, float]]:
+    """The closing's lock-step phase: every finger still closing at the same DOF, the palm
+    rising with it, until each has touched something or reached its limit.
+
+    ``poses_at(dof, moving, floor)`` gives the world poses of the moving fingers' links at
+    commanded DOF ``dof`` (radians) with the palm risen to the larger of :func:`rise` of it and
+    ``floor`` (the stopped fingers' rise, metres); ``moving`` maps each closing finger to
+    ("coupled", 0) or ("breakaway", frozen J2). ``first_contact`` is
+    :meth:`grasp.autograsp._Search.first_contact`.
+
+    Returns per finger (how it stopped, DOF, J2):
+    "distal" / "breakaway-distal" (touched; the caller closes it on from there, the palm fixed),
+    "limit" / "breakaway-limit" (reached the DOF's maximum untouched).
+    """
+    moving: dict[str, tuple[str, float]] = {f: ("coupled", 0.0) for f in FINGERS}
+    stopped: dict[str, tuple[str, float, float]] = {}
+    dof, floor = 0.0, 0.0
+    while moving:
+        dof, hit = first_contact(lambda t: poses_at(t, moving, floor), dof, dof_max,
+                                 step=step, speed=speed, tol=tol)
+        for finger, (mode, j2) in list(moving.items()):
+            j2 = min(dof, j2_max) if mode == "coupled" else j2
+            breakaway = mode == "breakaway"
+            if not hit:
+                stopped[finger] = ("breakaway-limit" if breakaway else "limit", dof, j2)
+            elif f"{finger}_dist" in hit:
+                stopped[finger] = ("breakaway-distal" if breakaway else "distal", dof, j2)
+            elif f"{finger}_prox" in hit:  # breakaway: J2 stops, the DOF goes on
+                moving[finger] = ("breakaway", j2)
+                continue
+            else:
+                continue
+            del moving[finger]
+            floor = max(floor, float(rise(math.degrees(dof))))
+    return stopped
+
+
+@functools.lru_cache(maxsize=8)
+def _kinematics(params: BarrettParams) -> HandKinematics:
+    return HandKinematics(params)
