@@ -6,7 +6,8 @@ contacts above its centre of mass, wrapped by fingertips only. :func:`features` 
 planned grasp by what the planner knows (the planned mesh, its contacts, the table), nothing of
 the true object: the object's weight estimated from the planned shape (its volume at
 ``DENSITY_KG_M3``, the lift test's density) against what the grasp resists (the force epsilon
-times the hand's grip), the grasp's kind (power or fingertip; from above or the side), its
+times the hand's grip), the grasp's kind (power or fingertip; from above or the side; a table
+pinch), its
 contacts' heights against the centre of mass, the fingers that touch. A logistic regression on
 those (scikit-learn, standardised features) gives :func:`hold_probability`; its coefficients
 live in ``grasp/lift_model.json`` and are applied here with numpy, so planning needs no
@@ -26,6 +27,7 @@ from pathlib import Path
 import numpy as np
 
 from grasp.physics.settings import DENSITY_KG_M3
+from grasp.pinch import TABLE_PINCH
 from grasp.table import SupportPlane
 
 MODEL_PATH = Path(__file__).with_name("lift_model.json")
@@ -49,6 +51,7 @@ FEATURES: tuple[str, ...] = (
     "mean_contact",  # mean contact height above the centre of mass (m)
     "size",  # the object's largest extent (m)
     "depth",  # centre of mass beyond the palm along the approach (m)
+    "table_pinch",  # 1: a table pinch (grasp.pinch), the palm rising while the fingers close
 )
 
 
@@ -82,6 +85,7 @@ def features(result, mesh, plane: SupportPlane, *, mass: float | None = None) ->
         float(heights.mean()),
         float(np.max(mesh.extents)),
         float((center - pose[:3, 3]) @ pose[:3, 2]),
+        float(result.kind == TABLE_PINCH),
     ])
 
 

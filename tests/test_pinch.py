@@ -164,3 +164,27 @@ def test_the_wire_carries_the_rise(plate):
     })
     assert parsed.kind == TABLE_PINCH and parsed.wrist_rise.end_m == wire.end_m
     np.testing.assert_allclose(parsed.end_palm_pose, grasp.end_palm_pose)
+
+
+def test_get_grasp_carries_a_table_pinch(plate):
+    """The service's answer for a table pinch (service.routes._grasp_out, serialised as the
+    route serialises it, read back by the client): its kind, rise and both palm poses, in the
+    camera and the world frame; the hand drawn where closing ends."""
+    from pydantic import TypeAdapter
+
+    from service.routes import _grasp_out
+
+    _, grasp = plate
+    camera = np.eye(4)
+    camera[:3, 3] = [0.1, -0.2, 0.5]
+    body = TypeAdapter(Grasp).dump_python(_grasp_out(grasp, camera), mode="json")
+    assert body["kind"] == TABLE_PINCH and body["wrist_rise"]["end_m"] > 0.05
+    back = Grasp.from_json(body)
+    np.testing.assert_allclose(back.end_palm_pose, grasp.end_palm_pose)
+    np.testing.assert_allclose(back.end_palm_pose_world, camera @ grasp.end_palm_pose)
+    np.testing.assert_allclose(back.palm_pose, grasp.palm_pose)
+    palm = next(p for p in back.hand if p.link == "palm")
+    np.testing.assert_allclose(palm.pose[:3, 3],  # the palm body: 4 cm behind the face
+                               grasp.end_palm_pose[:3, 3] - 0.04 * grasp.end_palm_pose[:3, 2],
+                               atol=0.005)
+    assert back.wrist_rise.at(90.0) == pytest.approx(float(rise(90.0)))

@@ -173,8 +173,9 @@ def test_grasp_on_a_support_plane(client, scene):
     for g in r.json()["grasps"]:
         world = np.asarray(g["palm_pose_world"])
         assert world[:3, 2] @ plane.normal <= 1e-6  # approach along or down the plane
-        hand = GraspResult(True, "", world, HandJoints(**g["joints_deg"]),
-                           HandDofs(*g["dofs_deg"]))
+        # the hand where it closed (a table pinch's palm rose from palm_pose while closing)
+        hand = GraspResult(True, "", np.asarray(g["end_palm_pose_world"]),
+                           HandJoints(**g["joints_deg"]), HandDofs(*g["dofs_deg"]))
         assert plane.height(hand_points(hand)).min() >= -1e-6
     # the session keeps the plane: reported, and the completion is cut at it
     kept = client.get(f"/sessions/{sid}").json()["support_plane"]

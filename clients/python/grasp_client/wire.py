@@ -342,10 +342,11 @@ class Grasp:
         "table (docs/service.md, 'Executing a table pinch')")] = "autograsp"
     wrist_rise: Annotated[WristRise | None, Doc(
         "a table pinch's palm rise against the fingers' DOF; null for an autograsp")] = None
-    end_palm_pose: Annotated[np.ndarray | None, Array(
-        (4, 4), "4×4 palm→camera where closing ends: palm_pose, risen for a table pinch")] = None
-    end_palm_pose_world: Annotated[np.ndarray | None, Array(
-        (4, 4), "the same palm→world, when the latest view came with a camera_pose")] = None
+    end_palm_pose: Annotated[np.ndarray, Array(
+        (4, 4), "4×4 palm→camera where closing ends: palm_pose, risen for a table pinch")
+    ] | None = None
+    end_palm_pose_world: Annotated[np.ndarray, Array(
+        (4, 4), "the same palm→world, when the latest view came with a camera_pose")] | None = None
 
     @property
     def joints(self) -> dict[str, float]:

@@ -116,7 +116,27 @@ class BenchmarkTable(Table):
                 lines.append(f"| {r['id']} | {size} | {r['mass_kg']:.2f} | "
                              f"{o.get('kind', '—')} | {o['reason']} |")
             lines.append("")
-        return lines
+        return lines + _flat(records)
+
+
+def _flat(records: list[dict]) -> list[str]:
+    """The objects lower than a table pinch's palm (:func:`grasp.pinch.pinch_height`), planned on
+    the true mesh: which held, with which grasp, and why the others did not."""
+    from grasp.pinch import pinch_height
+
+    low = [r for r in records if r["size_m"][2] < pinch_height() and "true_mesh" in r["rows"]]
+    if not low:
+        return []
+    held = sum(r["rows"]["true_mesh"]["held"] for r in low)
+    lines = [f"Flat and small objects (lower than {100 * pinch_height():.1f} cm on the table, where "
+             f"table pinches are tried), planned on the true mesh: {held} of {len(low)} held.", "",
+             "| Object | Size (cm) | Held | Grasp | Why |", "|---|---|---|---|---|"]
+    for r in low:
+        o = r["rows"]["true_mesh"]
+        size = " × ".join(f"{100 * v:.1f}" for v in r["size_m"])
+        lines.append(f"| {r['id']} | {size} | {'yes' if o['held'] else 'no'} | "
+                     f"{o.get('kind', '—')} | {o['reason']} |")
+    return lines + [""]
 
 
 def _verification(records: list[dict], cfg: dict) -> list[str]:
