@@ -38,7 +38,7 @@ from __future__ import annotations
 
 import functools
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 
 import numpy as np
 
@@ -46,7 +46,7 @@ from grasp.table import SupportPlane
 from hands.barrett import BH8_282, FINGERS, BarrettParams, HandKinematics
 
 __all__ = ["PROFILE_STEP_DEG", "TABLE_PINCH", "TIP_CLEARANCE_M", "close_rising", "depth",
-           "faces_table", "pinch_height", "profile", "rise"]
+           "faces_table", "pinch_failure", "pinch_height", "profile", "rise"]
 
 #: The grasp kind (``GraspResult.kind``, the wire's ``kind``).
 TABLE_PINCH = "table pinch"
@@ -143,6 +143,29 @@ def close_rising(
             del moving[finger]
             floor = max(floor, float(rise(math.degrees(dof))))
     return stopped
+
+
+def pinch_failure(results: Sequence) -> str | None:
+    """Why none of the table pinches among ``results`` (autograsped, not necessarily scored) is
+    a grasp, in words: the one whose fingers touched the object most, what its fingers did; None
+    without table pinches."""
+    pinches = [r for r in results if r.kind == TABLE_PINCH]
+    tried = [r for r in results if r.kind != TABLE_PINCH and r.reason.startswith("table pinch:")]
+    if not pinches:
+        return (None if not tried else f"table pinches: {len(tried)} tried, each met the object "
+                "on its way down (it is too tall under the palm for the tips to reach the table)")
+
+    def touching(r) -> set[str]:
+        return {c.link[:2] for c in r.contacts if c.link[:2] in FINGERS}
+
+    best = max(pinches, key=lambda r: (len(touching(r)), len(r.contacts)))
+    missed = [f for f, stop in zip(FINGERS, best.finger_stops, strict=True)
+              if stop.endswith("limit") and f not in touching(best)]
+    said = f"table pinches: {len(pinches) + len(tried)} tried, at best "
+    said += f"{len(touching(best))} finger(s) touched it"
+    if missed:
+        said += f", {', '.join(missed)} closed under the palm untouched (it lies between them)"
+    return said
 
 
 @functools.lru_cache(maxsize=8)

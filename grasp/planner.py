@@ -45,7 +45,7 @@ from grasp.candidates import (
     table_candidates,
 )
 from grasp.collision import CollisionScene, check_mesh
-from grasp.pinch import TABLE_PINCH
+from grasp.pinch import TABLE_PINCH, pinch_failure
 from grasp.screen import Screen, fingertip_span
 from grasp.table import SupportPlane, crosses
 from grasp.verify import DEFAULT_VERIFY, VerifySettings, describe
@@ -243,9 +243,10 @@ def plan(
     else:
         best = _best_distinct(results, scene, top_k)
     if support_plane is not None and best and not best[0].success:
-        limits = table_limits(scene.mesh, support_plane)
-        if limits is not None:
-            best[0] = dataclasses.replace(best[0], reason=f"{best[0].reason}; {limits}")
+        why = [w for w in (table_limits(scene.mesh, support_plane), pinch_failure(results))
+               if w is not None and w not in best[0].reason]
+        if why:
+            best[0] = dataclasses.replace(best[0], reason="; ".join([best[0].reason, *why]))
     lap("rank")
     if timings is not None:
         timings.update(stages, screened=len(candidates) if screened else 0,
