@@ -126,7 +126,7 @@ def close_rising(
     stopped: dict[str, tuple[str, float, float]] = {}
     dof, floor = 0.0, 0.0
     while moving:
-        dof, hit = first_contact(lambda t: poses_at(t, moving, floor), dof, dof_max,
+        dof, hit = first_contact(lambda t, floor=floor: poses_at(t, moving, floor), dof, dof_max,
                                  step=step, speed=speed, tol=tol)
         for finger, (mode, j2) in list(moving.items()):
             j2 = min(dof, j2_max) if mode == "coupled" else j2

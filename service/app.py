@@ -21,6 +21,7 @@ from fastapi.staticfiles import StaticFiles
 
 from service import errors, inspector, openapi, routes
 from service.deps import Services
+from service.frames import FrameChecks
 from service.memory import return_freed_memory
 from service.middleware import BodyLimit, QueryOnce, TokenGate
 from service.parsing import BodyParser
@@ -34,6 +35,14 @@ log = logging.getLogger(__name__)
 
 #: Seconds between sweeps that delete expired sessions (at most; shorter for short TTLs).
 PURGE_INTERVAL_S = 60.0
+
+
+def frame_checks(settings: Settings) -> FrameChecks | None:
+    """The frame checks' tolerances from the settings (None: GRASP_CHECK_FRAMES is off)."""
+    if not settings.check_frames:
+        return None
+    return FrameChecks(settings.max_camera_distance_m, settings.plane_tolerance_m,
+                       settings.max_plane_gap_m, settings.max_object_jump_m)
 
 
 def create_app(settings: Settings | None = None) -> FastAPI:
@@ -72,7 +81,8 @@ async def _lifespan(app: FastAPI) -> AsyncIterator[None]:
     model = await anyio.to_thread.run_sync(load_model, settings.model)
     store = await anyio.to_thread.run_sync(open_store, settings)
     pipeline = await anyio.to_thread.run_sync(
-        lambda: Pipeline(model, store, model_name=settings.model, max_views=settings.max_views)
+        lambda: Pipeline(model, store, model_name=settings.model, max_views=settings.max_views,
+                         frame_checks=frame_checks(settings))
     )
     app.state.services = Services(
         settings=settings,

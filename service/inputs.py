@@ -27,6 +27,12 @@ MIN_PITCH_M, MAX_PITCH_M = 1e-4, 10.0
 #: Fields of view (degrees) a depth camera has: focal lengths that give one outside are not in
 #: pixels (or belong to another image size).
 MIN_FOV_DEG, MAX_FOV_DEG = 20.0, 150.0
+#: A depth image whose median over the object is nearer (metres) is refused.
+MIN_DEPTH_MEDIAN_M = 0.05
+#: fx / fy of a depth camera lies within this factor of 1 (square pixels).
+MAX_ASPECT = 1.25
+#: A depth camera's principal point lies within this share of the image's size from its centre.
+MAX_OFF_CENTRE = 0.25
 
 
 class InputError(ValueError):
@@ -46,6 +52,8 @@ class DecodedView:
     grid: VoxelGrid | None = None
     camera_to_world: np.ndarray | None = None  # (4, 4) float64
     support_plane: np.ndarray | None = None  # (4,) world frame, kept by the session
+    background: np.ndarray | None = None  # (m, 3) some of a masked depth image's other pixels
+    check_frames: bool = True  # service.frames checks this view (the body's check_frames)
 
     def add_view_kwargs(self) -> dict:
         """Keyword arguments for :meth:`completion.stream.CompletionStream.add_view`."""
@@ -78,8 +86,11 @@ def decode_view(
                              "support_plane is in the world frame: it needs this view's "
                              "camera_pose")
         plane = view.support_plane.as_array()
-    posed = {"camera_to_world": pose, "support_plane": plane}
+    posed = {"camera_to_world": pose, "support_plane": plane, "check_frames": view.check_frames}
     if view.points is not None:
+        if not view.points:
+            raise InputError(("body", "points"), "points is empty: send the object's observed "
+                             "points (at least one), or skip a view in which it is hidden")
         if len(view.points) > max_points:
             raise InputError(
                 ("body", "points"), f"at most {max_points} points per view, got {len(view.points)}"
@@ -93,6 +104,7 @@ def decode_view(
     depth = _depth(view.depth, max_image_pixels)  # (H, W) uint16 mm or float32 m, as sent
     _plausible_intrinsics(view.intrinsics, depth.shape)
     mask = None if view.mask is None else _mask(view.mask, depth.shape, view.object_label)
+    _some_depth(depth, mask, view.depth.encoding)
     step = thinning_step(depth, mask, max_points)
     k = view.intrinsics
     if step > 1:  # every step-th pixel along both axes: the same camera at a lower resolution
@@ -106,13 +118,51 @@ def decode_view(
     _plausible_depth(metres, mask, max_depth_median_m, view.depth.encoding)
     with np.errstate(over="ignore", invalid="ignore"):
         points = depth_to_points(metres, intrinsics, mask)
+        background = None if mask is None else _background(metres, intrinsics, mask)
     points = _checked_points(points, from_depth=True)
     _plausible_distance(points, max_point_distance_m, ("body", "depth", "data"), MILLIMETRES_HINT)
-    return DecodedView(points=points, **posed)
+    return DecodedView(points=points, background=background, **posed)
+
+
+#: At most this many of the background's points are kept to check the support plane against.
+BACKGROUND_POINTS = 4096
+
+
+def _background(metres: np.ndarray, intrinsics: Intrinsics, mask: np.ndarray) -> np.ndarray:
+    """Up to :data:`BACKGROUND_POINTS` back-projected pixels outside ``mask`` with valid depth
+    (the table, where the camera sees it), every s-th pixel along both axes."""
+    outside = ~mask & np.isfinite(metres) & (metres > 0)
+    step = max(1, int(np.ceil(np.sqrt(outside.sum() / BACKGROUND_POINTS))))
+    sub = Intrinsics(intrinsics.fx / step, intrinsics.fy / step, intrinsics.cx / step,
+                     intrinsics.cy / step, width=metres[::step, ::step].shape[1],
+                     height=metres[::step, ::step].shape[0])
+    points = depth_to_points(metres[::step, ::step], sub, outside[::step, ::step], cleaning=None)
+    return points[np.isfinite(points).all(axis=1)][:BACKGROUND_POINTS]
 
 
 MILLIMETRES_HINT = "it looks like millimetres: send png16_mm (uint16 millimetres) or divide by 1000"
 POINTS_HINT = "they look like millimetres: send metres (divide by 1000)"
+
+
+def _some_depth(depth: np.ndarray, mask: np.ndarray | None, encoding: str) -> None:
+    """A depth image with at least one return, and one inside a non-empty mask (a mask with no
+    pixel, the object hidden, is a view like any other)."""
+    valid = np.isfinite(depth) & (depth > 0)
+    if not valid.any():
+        hint = ("metres cast to uint16 are all 0 or 1: send png16_mm in millimetres, or f32_m"
+                if encoding == "png16_mm" else "every pixel is 0, NaN or ±inf")
+        raise InputError(("body", "depth", "data"),
+                         f"the depth image has no valid pixel (no return anywhere): {hint}")
+    if encoding == "png16_mm" and depth[valid].max() < 1000 * MIN_DEPTH_MEDIAN_M:
+        raise InputError(("body", "depth", "data"),
+                         f"the depth image's returns are all below {1000 * MIN_DEPTH_MEDIAN_M:g} "
+                         f"mm (at most {int(depth[valid].max())}): metres cast to uint16 leave 0 "
+                         "or 1 mm; send millimetres (or f32_m in metres)")
+    if mask is not None and mask.any() and not valid[mask].any():
+        raise InputError(("body", "mask"),
+                         f"none of the mask's {int(mask.sum())} object pixels has a depth return "
+                         f"(the depth image has {int(valid.sum())}): is the mask of this depth "
+                         "image, aligned with it?")
 
 
 def _plausible_depth(metres: np.ndarray, mask, limit: float, encoding: str) -> None:
@@ -123,6 +173,12 @@ def _plausible_depth(metres: np.ndarray, mask, limit: float, encoding: str) -> N
     if not valid.any():
         return
     median = float(np.median(metres[valid]))
+    if median < MIN_DEPTH_MEDIAN_M:
+        hint = ("metres cast to uint16 leave 0 or 1 mm: send millimetres" if encoding == "png16_mm"
+                else "check the depth scale")
+        raise InputError(("body", "depth", "data"),
+                         f"the depth's median over the object is {1000 * median:g} mm, nearer than "
+                         f"a depth camera sees ({1000 * MIN_DEPTH_MEDIAN_M:g} mm): {hint}")
     if median > limit:
         hint = MILLIMETRES_HINT if encoding == "f32_m" else "check the depth scale"
         raise InputError(("body", "depth", "data"),
@@ -143,7 +199,9 @@ def _plausible_distance(points: np.ndarray, limit: float, loc: tuple[str, ...], 
 
 def _plausible_intrinsics(k, shape: tuple[int, int]) -> None:
     """The principal point inside the image; focal lengths in pixels that give this image a
-    field of view a depth camera has (:data:`MIN_FOV_DEG` … :data:`MAX_FOV_DEG`)."""
+    field of view a depth camera has (:data:`MIN_FOV_DEG` … :data:`MAX_FOV_DEG`); square pixels
+    (:data:`MAX_ASPECT`) and the principal point near the centre (:data:`MAX_OFF_CENTRE`): K's
+    numbers in another order fail these."""
     h, w = shape
     loc = ("body", "intrinsics")
 
@@ -158,7 +216,8 @@ def _plausible_intrinsics(k, shape: tuple[int, int]) -> None:
     if off_centre(k.cx, k.cy) > 0.1 and swapped:
         raise InputError(loc, f"{where} lies far from the centre of the {w}×{h} depth image, "
                          f"where ({k.cy:g}, {k.cx:g}) would sit: cx and cy look swapped (cx "
-                         "runs along the width)")
+                         f"runs along the width), or the depth image is transposed (K fits a "
+                         f"{h}×{w} image)")
     for name, f, size, side in (("fx", k.fx, w, "wide"), ("fy", k.fy, h, "high")):
         fov = float(np.degrees(2.0 * np.arctan(size / (2.0 * f))))
         if not MIN_FOV_DEG <= fov <= MAX_FOV_DEG:
@@ -167,6 +226,18 @@ def _plausible_intrinsics(k, shape: tuple[int, int]) -> None:
                              f"{MAX_FOV_DEG:g}°: focal lengths are in pixels (about "
                              f"{size / (2 * np.tan(np.radians(30))):.0f} for a 60° view of "
                              f"this image)")
+    ratio = k.fx / k.fy
+    if not 1 / MAX_ASPECT <= ratio <= MAX_ASPECT:
+        factor = max(ratio, 1 / ratio)
+        raise InputError(loc, f"fx = {k.fx:g} and fy = {k.fy:g} differ by a factor {factor:.2f}: "
+                         f"a depth camera's pixels are square (fx ≈ fy, within ×{MAX_ASPECT:g}); "
+                         "is K in the order fx, fy, cx, cy? (ROS's CameraInfo.k is row-major: "
+                         "fx = k[0], cx = k[2], fy = k[4], cy = k[5])")
+    if off_centre(k.cx, k.cy) > MAX_OFF_CENTRE:
+        raise InputError(loc, f"{where} lies {100 * off_centre(k.cx, k.cy):.0f} % of the image "
+                         f"from the centre of the {w}×{h} depth image, where a depth camera's "
+                         f"lies within {100 * MAX_OFF_CENTRE:.0f} %: is K in the order fx, fy, cx, "
+                         "cy, and of this image?")
 
 
 def thinning_step(depth: np.ndarray, mask: np.ndarray | None, max_points: int) -> int:

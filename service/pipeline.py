@@ -20,9 +20,10 @@ import numpy as np
 import torch
 import trimesh
 
-from completion.grid import VoxelGrid
+from completion.grid import VoxelGrid, transform_points
 from completion.mesh import grid_to_mesh
 from completion.stream import Completion, CompletionStream, ViewResult
+from service.frames import DEFAULT_CHECKS, FrameChecks, Previous, check_view
 from service.inputs import DecodedView, InputError
 from service.store import ConcurrentUpdate, SessionRecord, Store
 
@@ -69,6 +70,7 @@ class Pipeline:
         *,
         model_name: str,
         max_views: int | None = None,
+        frame_checks: FrameChecks | None = DEFAULT_CHECKS,
     ) -> None:
         self.model = model.eval()
         self.store = store
@@ -77,6 +79,7 @@ class Pipeline:
         # only a model whose state grows with every view (MVT's key/value cache) is capped
         grows = getattr(getattr(model, "config", None), "kind", "") == "mvt"
         self.max_views = max_views if grows else None
+        self.frame_checks = frame_checks  # None: views' frames are not checked
 
     # ---------------------------------------------------------------------------- views
     def add_view(self, session_id: str | None, view: DecodedView) -> tuple[str, ViewResult]:
@@ -88,6 +91,7 @@ class Pipeline:
         if session_id is None:
             self.store.ensure_room()
             stream = CompletionStream(self.model)
+            self._check(stream, view)
             result = _step(stream, view)
             session_id = uuid.uuid4().hex
             self.store.create(
@@ -110,6 +114,7 @@ class Pipeline:
                     "GRASP_MAX_VIEWS): start a new session"
                 )
             stream = self._stream(record)
+            self._check(stream, view)
             result = _step(stream, view)
             try:
                 self.store.update(
@@ -124,6 +129,21 @@ class Pipeline:
         raise ConcurrentUpdate(
             f"session {session_id!r} kept changing while this view was applied; send it again"
         )
+
+    def _check(self, stream: CompletionStream, view: DecodedView) -> None:
+        """The view's camera pose and support plane against what it and the session show
+        (:mod:`service.frames`); raises InputError."""
+        if self.frame_checks is None or not view.check_frames:
+            return
+        plane = view.support_plane if view.support_plane is not None else stream.support_plane
+        previous = None
+        if stream.camera_to_world is not None and stream.seen:
+            seen = stream.observed_points()
+            previous = Previous(stream.camera_to_world,
+                                transform_points(seen, stream.camera_to_world))
+        if plane is not None:
+            plane = np.asarray(plane, dtype=np.float64) / np.linalg.norm(plane[:3])
+        check_view(view, plane, previous, self.frame_checks)
 
     def _stream(self, record: SessionRecord) -> CompletionStream:
         if record.model != self.model_id:

@@ -96,6 +96,11 @@ class ViewIn(_Strict):
         "is cut at it (nothing below the table) and every grasp treats it as an obstacle",
     )
 
+    check_frames: bool = Field(
+        True, description="check camera_pose and support_plane against what this view shows "
+        "(the camera above the table, the object on it and where earlier views saw it): a "
+        "contradiction is a 422 naming the likely mistake; false skips it for this view")
+
     @model_validator(mode="after")
     def _one_input(self) -> ViewIn:
         given = [name for name in ("points", "depth", "grid") if getattr(self, name) is not None]

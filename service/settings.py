@@ -116,6 +116,26 @@ class Settings(BaseSettings):
         10.0, gt=0, description="views whose object points lie farther from the camera (m) are "
         "refused: millimetres sent as metres, or a point cloud in another unit"
     )
+    check_frames: bool = Field(
+        True, description="check each posed view's camera_pose and support_plane against what it "
+        "shows (service/frames.py): a contradiction is a 422 naming the likely mistake"
+    )
+    max_camera_distance_m: float = Field(
+        20.0, gt=0, description="a camera_pose farther from the world's origin, or a camera that "
+        "moved farther between views (m), is refused"
+    )
+    plane_tolerance_m: float = Field(
+        0.03, gt=0, description="the camera, and the object's points, may lie this far below the "
+        "support plane (m); table pixels within it of the plane count as on it"
+    )
+    max_plane_gap_m: float = Field(
+        0.3, gt=0, description="with no table in view, the object's lowest point may lie this far "
+        "above the support plane (m)"
+    )
+    max_object_jump_m: float = Field(
+        0.2, gt=0, description="between views from different poses, the object's points (their "
+        "median, world frame) may move this far (m)"
+    )
     plan_seed: int = Field(0, description="seed of the grasp planner (same state, same grasp)")
     plan_budget: int = Field(
         AUTOGRASP_BUDGET, ge=1, description="candidates the planner autograsps exactly, the most "

@@ -67,6 +67,17 @@ def points_view(n: int = 300, seed: int = 0, centre=(0.0, 0.0, 0.5)) -> dict:
     return {"points": (rng.normal(scale=0.02, size=(n, 3)) + centre).tolist()}
 
 
+def hidden_view() -> dict:
+    """A view in which the object is hidden: a 32 × 24 depth image (a wall 0.5 m away) whose
+    mask is empty."""
+    from grasp_client.wire import b64, depth_f32_m, png_bytes
+
+    depth = np.full((24, 32), 0.5, dtype=np.float32)
+    return {"depth": depth_f32_m(depth), "intrinsics": {"fx": 28.0, "fy": 28.0, "cx": 15.5,
+                                                        "cy": 11.5},
+            "mask": b64(png_bytes(np.zeros((24, 32), dtype=np.uint8)))}
+
+
 def new_session(client: TestClient, body: dict | None = None) -> str:
     r = client.post("/views", json=body or points_view())
     assert r.status_code == 200, r.text

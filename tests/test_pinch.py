@@ -130,7 +130,8 @@ def test_a_pinch_needs_a_table_under_a_palm_facing_it():
     with pytest.raises(ValueError, match="support plane"):
         autograsp(mesh, down, pinch=True)
     tilted = down.copy()
-    tilted[:3, :3] = tilted[:3, :3] @ trimesh.transformations.rotation_matrix(0.2, [1, 0, 0])[:3, :3]
+    turn = trimesh.transformations.rotation_matrix(0.2, [1, 0, 0])
+    tilted[:3, :3] = tilted[:3, :3] @ turn[:3, :3]
     with pytest.raises(ValueError, match="facing it"):
         autograsp(mesh, tilted, pinch=True, support_plane=FLOOR)
 

@@ -16,6 +16,7 @@ import pytest
 from fastapi.testclient import TestClient
 from service_helpers import (
     check_grasp,
+    hidden_view,
     new_session,
     occupancy,
     points_view,
@@ -323,7 +324,7 @@ def test_sessions_that_never_saw_the_object_expire_sooner(tmp_path, tiny_model):
         store = client.app.state.services.pipeline.store
         now = [1000.0]
         store.clock = lambda: now[0]
-        empty = client.post("/views", json={"points": []}).json()["session_id"]
+        empty = client.post("/views", json=hidden_view()).json()["session_id"]
         seen = new_session(client)
         assert client.get(f"/sessions/{empty}").json()["expires"] == "1970-01-01T00:17:10Z"
         assert client.post("/views", json=points_view()).status_code == 503  # full

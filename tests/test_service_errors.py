@@ -15,6 +15,7 @@ from service_helpers import (
     MAX_BODY,
     MAX_POINTS,
     TINY,
+    hidden_view,
     new_session,
     occupancy,
     points_view,
@@ -182,7 +183,9 @@ def test_body_over_the_limit_is_413(client):
 
 
 def test_no_object_yet_is_409(client):
-    r = client.post("/views", json={"points": []})  # a fully occluded view
+    r = client.post("/views", json={"points": []})  # no points at all: a mistake, said
+    assert r.status_code == 422 and "points is empty" in r.text
+    r = client.post("/views", json=hidden_view())  # a fully occluded view: an empty mask
     assert r.status_code == 200 and r.json()["observed_voxels"] == 0
     sid = r.json()["session_id"]
     assert client.get(f"/sessions/{sid}").json()["object_seen"] is False
@@ -218,8 +221,8 @@ def test_occluded_view_after_a_camera_move_stays_on_the_object(client, scene):
     sid = new_session(client, first)
     _, before = occupancy(client, sid)
     moved = np.asarray(first["camera_pose"]) @ _translation([1.0, 0.0, 0.0])
-    r = client.post("/views", json={"points": [], "camera_pose": moved.tolist(),
-                                    "session_id": sid})
+    r = client.post("/views", json=hidden_view() | {"camera_pose": moved.tolist(),
+                                                     "session_id": sid})
     assert r.status_code == 200 and r.json()["observed_voxels"] == 0, r.text
     _, after = occupancy(client, sid)
     centre = np.array([19.5, 19.5, 19.5, 1.0])

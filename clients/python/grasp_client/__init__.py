@@ -12,9 +12,17 @@ from grasp_client.client import (
     Session,
     SessionGone,
     Unauthorized,
+    Unreachable,
 )
-from grasp_client.wire import (JOINT_NAMES, Contact, Grasp, Primitive, SupportPlane, Verification,
-                               WristRise)
+from grasp_client.wire import (
+    JOINT_NAMES,
+    Contact,
+    Grasp,
+    Primitive,
+    SupportPlane,
+    Verification,
+    WristRise,
+)
 
 __version__ = "0.2.0"
 
@@ -31,6 +39,7 @@ __all__ = [
     "SessionGone",
     "SupportPlane",
     "Verification",
-    "WristRise",
     "Unauthorized",
+    "Unreachable",
+    "WristRise",
 ]

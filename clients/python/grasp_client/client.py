@@ -10,10 +10,11 @@
         robot.move(best.pregrasp_pose_world); robot.approach(best.palm_pose_world)
 
 Depth is metres (float32/float64) or millimetres (uint16), as ROS's ``32FC1`` and ``16UC1``
-images carry it; ``K`` is a 3×3 camera matrix or (fx, fy, cx, cy). Everything is checked before
-a request is sent. Service errors become exceptions that carry the service's message
-(:class:`InvalidRequest` is a ``ValueError`` naming the field, :class:`SessionGone`,
-:class:`NothingSeen`, :class:`Unauthorized`); a 503 (the service busy or full) and a refused
+images carry it; ``K`` is a 3×3 camera matrix, ROS's ``CameraInfo.k`` or ``.p``, or (fx, fy, cx,
+cy). Everything is checked before a request is sent. The client raises only its own exceptions,
+all :class:`ServiceError`: :class:`InvalidRequest` (a ``ValueError`` naming the field),
+:class:`SessionGone`, :class:`NothingSeen`, :class:`Unauthorized`, and :class:`Unreachable` (no
+answer: refused, dropped or timed out); a 503 (the service busy or full) and a refused
 connection are retried with backoff, honouring ``Retry-After``, a bounded number of times.
 Frames: ``*_pose`` is palm→camera of the latest view, ``*_pose_world`` palm→world when the views
 came with ``camera_pose`` (docs/design.md §3, §7).
@@ -72,6 +73,12 @@ def _invalid(field: str, message: str) -> InvalidRequest:
     """An input the client refuses before sending it, as the service would (``field`` named)."""
     return InvalidRequest(None, [{"loc": ["body", *field.split(".")], "msg": message,
                                   "type": "value_error"}])
+
+
+class Unreachable(ServiceError, ConnectionError):
+    """The service could not be reached or did not answer in time (after the retries): the
+    connection was refused, dropped, or timed out. A view sent when the answer timed out may
+    have been stored."""
 
 
 class SessionGone(ServiceError, LookupError):
@@ -137,12 +144,20 @@ class GraspClient:
             last = attempt == self.retries
             try:
                 response = self._http.request(method, path, **kwargs)
-            except (httpx.ConnectError, httpx.ConnectTimeout):  # nothing was sent: safe to retry
-                if last:
-                    raise
+            except (httpx.ConnectError, httpx.ConnectTimeout) as exc:  # nothing was sent: safe
+                if last:  # to retry
+                    raise Unreachable(None, f"no service answers at {self.url} ({exc}; tried "
+                                      f"{self.retries + 1} times)") from None
                 time.sleep(min(wait, self.max_wait))
                 wait *= 2
                 continue
+            except httpx.TimeoutException as exc:
+                raise Unreachable(None, f"{method} {path}: {self.url} did not answer in time "
+                                  f"({exc or type(exc).__name__}); a view may have been "
+                                  "stored all the same") from None
+            except httpx.HTTPError as exc:  # the connection dropped mid-request, or worse
+                raise Unreachable(None, f"{method} {path} to {self.url} failed: "
+                                  f"{exc or type(exc).__name__}") from None
             if response.status_code == RETRY_STATUS and not last:
                 time.sleep(min(_retry_after(response) or wait, self.max_wait))
                 wait *= 2
@@ -161,7 +176,7 @@ class GraspClient:
         for session in list(self._open):
             try:
                 session.delete()
-            except (ServiceError, httpx.TransportError):
+            except ServiceError:
                 pass  # gone already, or the service is: nothing left to clean
         self._http.close()
 
@@ -191,33 +206,40 @@ class Session:
 
     def add_view(self, depth: np.ndarray, K: Any, *, mask: np.ndarray | None = None,
                  object_label: int | None = None, camera_pose: np.ndarray | None = None,
-                 encoding: str | None = None) -> dict:
-        """Send one depth image: (H, W) metres (float) or millimetres (uint16), 0 or NaN = no
-        return; ``encoding`` a ROS name to check it against ("32FC1", "16UC1", "mono16").
-        ``mask`` (H, W): boolean, 0/1 or 0/255 with 0 = background, or a label image with
-        ``object_label``, the value of the object's pixels. ``camera_pose`` 4×4 camera→world.
-        Returns the service's answer (``view_index``, ``observed_voxels``,
-        ``occupied_voxels``)."""
+                 encoding: str | None = None, check_frames: bool = True) -> dict:
+        """Send one depth image: (H, W) or (H, W, 1) metres (float) or millimetres (uint16), 0 or
+        NaN = no return; ``encoding`` a ROS name to check it against ("32FC1", "16UC1",
+        "mono16"). ``K``: a 3×3 camera matrix, ROS's flat 9-number ``CameraInfo.k``, its 3×4
+        ``p`` (12 numbers or 3×4), or (fx, fy, cx, cy). ``mask`` (H, W): boolean, 0/1 or 0/255
+        with 0 = background, or a label image with ``object_label``, the value of the object's
+        pixels. ``camera_pose`` 4×4 camera→world (OpenCV camera frame: x right, y down, z
+        forward). ``check_frames=False`` skips the service's check of the pose and the support
+        plane against what the view shows. Returns the service's answer (``view_index``,
+        ``observed_voxels``, ``occupied_voxels``)."""
+        depth = _squeeze(depth, "depth")
         body = {"depth": _depth_field(depth, encoding), "intrinsics": _intrinsics(K)}
         if mask is not None:
-            body["mask"] = mask_png(_object_pixels(mask, np.shape(depth), object_label))
+            body["mask"] = mask_png(_object_pixels(_squeeze(mask, "mask"), np.shape(depth),
+                                                   object_label))
         elif object_label is not None:
             raise _invalid("object_label", "object_label names the object's value in a label "
                            "image: it needs mask")
-        return self._post(body, camera_pose)
+        return self._post(body, camera_pose, check_frames)
 
-    def add_points(self, points: np.ndarray, *, camera_pose: np.ndarray | None = None) -> dict:
+    def add_points(self, points: np.ndarray, *, camera_pose: np.ndarray | None = None,
+                   check_frames: bool = True) -> dict:
         """Send the object's observed points, (N, 3) metres in the camera frame."""
         p = np.asarray(points, dtype=np.float64)
         if p.ndim != 2 or p.shape[1] != 3 or not np.isfinite(p).all():
             raise _invalid("points",
                            f"points must be a finite (N, 3) array, got shape {p.shape}")
-        return self._post({"points": p.tolist()}, camera_pose)
+        return self._post({"points": p.tolist()}, camera_pose, check_frames)
 
-    def add_grid(self, grid, *, camera_pose: np.ndarray | None = None) -> dict:
+    def add_grid(self, grid, *, camera_pose: np.ndarray | None = None,
+                 check_frames: bool = True) -> dict:
         """Send a ready 40³ grid: an object with ``pack()`` (the 8000 packed bytes) and
         ``grid_to_camera``, such as the service's ``completion.grid.VoxelGrid``."""
-        return self._post({"grid": grid_field(grid)}, camera_pose)
+        return self._post({"grid": grid_field(grid)}, camera_pose, check_frames)
 
     def grasps(self, top_k: int = 1, *, n_candidates: int | None = None,
                verify: int | None = None) -> list[Grasp]:
@@ -264,7 +286,9 @@ class Session:
             self.client._open.remove(self)
         self.id = None
 
-    def _post(self, body: dict, camera_pose: np.ndarray | None) -> dict:
+    def _post(self, body: dict, camera_pose: np.ndarray | None, check_frames: bool) -> dict:
+        if not check_frames:
+            body["check_frames"] = False
         if camera_pose is not None:
             try:
                 body["camera_pose"] = rigid_pose(camera_pose).tolist()
@@ -308,6 +332,12 @@ def _depth_field(depth: np.ndarray, encoding: str | None) -> dict:
     return depth_png16_raw(d) if unit == "mm" else depth_f32_m(d)
 
 
+def _squeeze(image: Any, name: str) -> np.ndarray:
+    """An (H, W, 1) image (as ROS image arrays often come) as (H, W)."""
+    a = np.asarray(image)
+    return a[..., 0] if a.ndim == 3 and a.shape[2] == 1 else a
+
+
 def _object_pixels(mask: Any, shape: tuple[int, ...], label: int | None) -> np.ndarray:
     """(H, W) bool: the object's pixels by the service's own rule (:func:`object_pixels`)."""
     m = np.asarray(mask)
@@ -326,6 +356,13 @@ def _intrinsics(K: Any) -> dict:
         values = [K.get(k) for k in ("fx", "fy", "cx", "cy")]
     else:
         k = np.asarray(K, dtype=np.float64)
+        if k.shape in ((9,), (12,)):  # ROS CameraInfo.k (3×3) or .p (3×4), row-major
+            k = k.reshape(3, -1)
+        if k.shape == (3, 4):  # a projection matrix P = K [I | t]: its left 3×3 is K
+            if not np.allclose(k[2], [0, 0, 1, 0]):
+                raise _invalid("intrinsics", "a 3×4 P must end in the row [0, 0, 1, 0] "
+                               f"(ROS CameraInfo.p), got {k[2].tolist()}")
+            k = k[:, :3]
         if k.shape == (3, 3):
             if not np.allclose(k[2], [0, 0, 1]) or k[0, 1] != 0 or k[1, 0] != 0:
                 raise _invalid("intrinsics",
@@ -335,7 +372,8 @@ def _intrinsics(K: Any) -> dict:
         elif k.shape == (4,):
             values = list(k)
         else:
-            raise _invalid("intrinsics", f"K must be 3×3 or (fx, fy, cx, cy), got shape {k.shape}")
+            raise _invalid("intrinsics", "K must be 3×3, 9 or 12 numbers (ROS CameraInfo.k or .p), "
+                           f"3×4 or (fx, fy, cx, cy), got shape {k.shape}")
     if any(v is None for v in values):
         raise _invalid("intrinsics", "K needs fx, fy, cx and cy")
     fx, fy, cx, cy = (float(v) for v in values)

@@ -397,7 +397,14 @@ def object_pixels(mask: Any, label: int | None = None, *, kind: str | None = Non
     holds."""
     m = np.asarray(mask)
     if label is not None:
-        return m == label
+        inside = m == label
+        if not inside.any() and m.size:
+            values = np.unique(m)
+            shown = ", ".join(f"{v:g}" for v in values[:8].tolist()) + (
+                ", …" if len(values) > 8 else "")
+            raise ValueError(f"object_label {label} is not in the label image ({kind or m.dtype}"
+                             f"), which holds {shown}: the object's pixels must have that value")
+        return inside
     if m.dtype == bool:
         return m
     inside = m != 0

@@ -128,8 +128,9 @@ def _flat(records: list[dict]) -> list[str]:
     if not low:
         return []
     held = sum(r["rows"]["true_mesh"]["held"] for r in low)
-    lines = [f"Flat and small objects (lower than {100 * pinch_height():.1f} cm on the table, where "
-             f"table pinches are tried), planned on the true mesh: {held} of {len(low)} held.", "",
+    lines = [f"Flat and small objects (lower than {100 * pinch_height():.1f} cm on the table, "
+             f"where table pinches are tried), planned on the true mesh: {held} of {len(low)} "
+             "held.", "",
              "| Object | Size (cm) | Held | Grasp | Why |", "|---|---|---|---|---|"]
     for r in low:
         o = r["rows"]["true_mesh"]

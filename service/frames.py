@@ -1,0 +1,179 @@
+"""Frames checked against what the camera saw: a wrong pose or plane is a 422, not a grasp.
+
+A camera pose and a support plane are numbers the robot's code computes; a wrong convention
+(millimetres, world→camera, OpenGL's camera frame, the plane in the camera frame, its normal or
+its offset's sign flipped) still gives rigid poses and valid planes, and once accepted it becomes
+a confident grasp in the wrong place. What the views show can refute them:
+
+- the camera's distance from the world's origin (:attr:`FrameChecks.max_camera_distance_m`);
+- with a support plane (given with the view, or kept by the session): the camera above the table,
+  the object's points on its upper side, and the table itself where the depth image shows it
+  (the pixels outside the mask: some of them lie on the plane), or else the object's lowest point
+  near it (:attr:`FrameChecks.max_plane_gap_m`);
+- from the second posed view on: the object where the previous view saw it, in the world, once
+  the camera has moved (:attr:`FrameChecks.max_object_jump_m`); a refusal there says that this
+  view or an earlier one is wrong, since an earlier view was accepted on less evidence.
+
+Each refusal is an :class:`~service.inputs.InputError` (422) naming the field and the mistake
+that would explain it: the checks are run again with each likely mistake undone, and the first
+that makes the view consistent is named. ``GRASP_CHECK_FRAMES=false`` (the service) or
+``"check_frames": false`` (one view) turns them off for a caller who knows better.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+
+from completion.grid import plane_in_frame, transform_points
+from service.inputs import DecodedView, InputError
+
+#: OpenGL's camera frame (x right, y up, z backward) against OpenCV's (x right, y down, z forward).
+OPENGL_TO_OPENCV = np.diag([1.0, -1.0, -1.0, 1.0])
+#: A camera that moved less than this (metres) between views has not moved.
+STILL_M = 0.02
+#: The table counts as seen where at least this share of the background's points lie on the plane
+#: (within the tolerance) ...
+TABLE_SHARE = 0.10
+#: ... and at least this many times the share a plane cutting across the background at random
+#: would hold (the tolerance's slab against the background's spread of heights).
+TABLE_CONCENTRATION = 3.0
+FRAMES = ("OpenCV optical: x right, y down, z forward; camera_pose is camera→world in metres; "
+          "support_plane is [nx, ny, nz, d] in the world frame, n pointing up")
+
+
+@dataclass(frozen=True)
+class FrameChecks:
+    """The tolerances (metres) of the frame checks (service settings ``GRASP_*``)."""
+
+    max_camera_distance_m: float = 20.0
+    plane_tolerance_m: float = 0.03
+    max_plane_gap_m: float = 0.3
+    max_object_jump_m: float = 0.2
+
+
+DEFAULT_CHECKS = FrameChecks()
+
+
+@dataclass(frozen=True)
+class Previous:
+    """What the session saw before this view: its camera pose and the object's world points."""
+
+    camera_to_world: np.ndarray
+    points_world: np.ndarray  # (n, 3)
+
+
+def check_view(view: DecodedView, plane: np.ndarray | None, previous: Previous | None,
+               limits: FrameChecks = DEFAULT_CHECKS) -> None:
+    """Refuse ``view`` (:class:`InputError`) when its camera pose or the support plane
+    (``plane``: the view's or the session's, world frame, unit normal) contradict what its
+    depth or points show, or what ``previous`` showed."""
+    pose = view.camera_to_world
+    if pose is None or view.points is None or not len(view.points):
+        return
+    _check_distance(pose, previous, limits)
+    problem = _problem(view.points, view.background, pose, plane, previous, limits)
+    if problem is None:
+        return
+    loc, said = problem
+    fix = _likely_mistake(view, plane, previous, limits)
+    raise InputError(loc, f"{said}; {fix}" if fix else f"{said} ({FRAMES})")
+
+
+def _check_distance(pose: np.ndarray, previous: Previous | None, limits: FrameChecks) -> None:
+    far = float(np.linalg.norm(pose[:3, 3]))
+    if far > limits.max_camera_distance_m:
+        said = (f"camera_pose puts the camera {far:g} m from the world's origin (at most "
+                f"GRASP_MAX_CAMERA_DISTANCE_M = {limits.max_camera_distance_m:g} m)")
+        if far / 1000.0 <= limits.max_camera_distance_m:
+            said += ": its translation looks like millimetres; poses are in metres"
+        raise InputError(("body", "camera_pose"), said)
+    if previous is not None:
+        moved = float(np.linalg.norm(pose[:3, 3] - previous.camera_to_world[:3, 3]))
+        if moved > limits.max_camera_distance_m:
+            raise InputError(("body", "camera_pose"),
+                             f"the camera moved {moved:g} m since the previous view (at most "
+                             f"{limits.max_camera_distance_m:g} m): is this view's pose in "
+                             "another unit or frame than the earlier ones'?")
+
+
+def _problem(points, background, pose, plane, previous, limits) -> tuple[tuple, str] | None:
+    """What is inconsistent, as (field, what), or None."""
+    world = transform_points(points, pose)
+    if plane is not None:
+        n, d = plane[:3], float(plane[3])
+        camera = float(n @ pose[:3, 3] + d)
+        if camera < -limits.plane_tolerance_m:
+            return (("body", "camera_pose"),
+                    f"camera_pose and support_plane put the camera {-camera:.3g} m below the "
+                    "table")
+        heights = world @ n + d
+        low = float(np.percentile(heights, 2))
+        if low < -limits.plane_tolerance_m:
+            return (("body", "support_plane"),
+                    f"the object's points lie down to {-low:.3g} m below the support plane")
+        table = _table_seen(background, pose, plane, limits)
+        if table is False and low > limits.plane_tolerance_m or \
+                table is None and low > limits.max_plane_gap_m:
+            seen = " and none of the table the depth image shows lies on it" if table is False \
+                else ""
+            return (("body", "support_plane"),
+                    f"the object's lowest point lies {low:.3g} m above the support plane{seen}")
+    if previous is not None and len(previous.points_world):
+        moved = float(np.linalg.norm(pose[:3, 3] - previous.camera_to_world[:3, 3]))
+        turned = float(np.abs(pose[:3, :3] - previous.camera_to_world[:3, :3]).max())
+        jump = float(np.linalg.norm(np.median(world, axis=0)
+                                    - np.median(previous.points_world, axis=0)))
+        if (moved > STILL_M or turned > 0.05) and jump > limits.max_object_jump_m:
+            return (("body", "camera_pose"),
+                    f"with this camera_pose the object lies {jump:.3g} m from where the "
+                    "session's previous view saw it (this view's pose, or an earlier one, is "
+                    "wrong: the views disagree)")
+    return None
+
+
+def _table_seen(background, pose, plane, limits) -> bool | None:
+    """Whether some of the depth image's background lies on the plane (None: too little
+    background to tell)."""
+    if background is None or len(background) < 50:
+        return None
+    heights = transform_points(background, pose) @ plane[:3] + float(plane[3])
+    share = float(np.mean(np.abs(heights) <= limits.plane_tolerance_m))
+    lo, hi = np.percentile(heights, [5, 95])
+    chance = min(1.0, 2.0 * limits.plane_tolerance_m / max(float(hi - lo), 1e-9))
+    return share >= TABLE_SHARE and share >= TABLE_CONCENTRATION * chance
+
+
+def _likely_mistake(view: DecodedView, plane, previous, limits) -> str | None:
+    """The first common mistake whose undoing makes the view consistent, as advice."""
+    pose = view.camera_to_world
+    flat = None if plane is None else np.asarray(plane, dtype=np.float64)
+    alternatives: list[tuple[str, Callable[[], tuple]]] = [
+        ("camera_pose looks like world→camera: send camera→world (its inverse)",
+         lambda: (np.linalg.inv(pose), flat)),
+        ("camera_pose looks like an OpenGL camera (y up, z backward): the camera frame is "
+         "OpenCV's (x right, y down, z forward); multiply it by diag(1, -1, -1, 1) on the right",
+         lambda: (pose @ OPENGL_TO_OPENCV, flat)),
+    ]
+    if flat is not None:
+        alternatives += [
+            ("support_plane's normal points down: n points up, from the table toward the object "
+             "(send -n, -d)", lambda: (pose, -flat)),
+            ("support_plane's d has the wrong sign: n·x + d = 0 for points x on the table",
+             lambda: (pose, flat * [1.0, 1.0, 1.0, -1.0])),
+            ("support_plane looks like it is in the camera frame: send it in the world frame",
+             lambda: (pose, _camera_plane_in_world(flat, pose))),
+        ]
+    for advice, undo in alternatives:
+        other_pose, other_plane = undo()
+        if _problem(view.points, view.background, other_pose, other_plane, previous,
+                    limits) is None:
+            return advice
+    return None
+
+
+def _camera_plane_in_world(plane: np.ndarray, camera_to_world: np.ndarray) -> np.ndarray:
+    """The world plane that ``plane``, read in the camera frame, is."""
+    return plane_in_frame(plane, np.linalg.inv(camera_to_world))
