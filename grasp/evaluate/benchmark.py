@@ -174,7 +174,8 @@ def grasp_kind(grasp, up: np.ndarray = TABLE[:3]) -> str:
 def run_object(scene: Scene, models: dict, rows, *, candidates: int, seed: int,
                verify: int = 4) -> dict[str, dict]:
     """row -> {"held", "reason", "kind", "planned_joints_deg", "executed_joints_deg",
-    "hold_probability", "palm_pose"} for one object (the palm pose in the world frame); the
+    "hold_probability", "palm_pose"} for one object (the palm pose in the world frame; a table
+    pinch adds "end_palm_pose", where closing ended); the
     verified rows add "verification" (what the top grasp's trials on the planned mesh saw) and
     "verified" (tried: how many grasps were lift-tested before the answer).
 
@@ -213,6 +214,8 @@ def run_object(scene: Scene, models: dict, rows, *, candidates: int, seed: int,
             "hold_probability": None if np.isnan(p) else round(float(p), 4),
             "palm_pose": np.round(world.palm_pose, 6).tolist(),
         }
+        if world.wrist_rise is not None:  # a table pinch: where its palm rose to while closing
+            out[row]["end_palm_pose"] = np.round(world.end_palm_pose, 6).tolist()
         if tries:
             out[row] |= {"verification": dataclasses.asdict(world.verification),
                          "tried": timings["verified"]}

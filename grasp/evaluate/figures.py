@@ -160,7 +160,8 @@ def _benchmark_failures_figure(
         patch = trimesh.creation.box([1.2 * (hi - lo)[0] + 0.02, 1.2 * (hi - lo)[1] + 0.02,
                                       0.002])
         patch.apply_translation([(lo[0] + hi[0]) / 2, (lo[1] + hi[1]) / 2, -0.001])
-        hand = GraspResult(False, record["reason"], np.asarray(record["palm_pose"]),
+        palm = record.get("end_palm_pose", record["palm_pose"])  # where the fingers closed
+        hand = GraspResult(False, record["reason"], np.asarray(palm),
                            HandJoints(*record["planned_joints_deg"]),
                            HandDofs(record["planned_joints_deg"][0], 0.0, 0.0, 0.0))
         with quiet_fds(1):
