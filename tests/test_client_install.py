@@ -1,12 +1,14 @@
 """The client as a robot's computer gets it: ``clients/python`` installed alone in fresh virtual
 environments on Python 3.10, 3.11 and 3.12, with numpy 1.26 (ROS 2 Humble and Jazzy) or 2.x, runs
-its shipped example against a real server started from the main install and gets a typed grasp;
-nothing of the server's (torch, pybullet, fcl, scipy, fastapi, pydantic, Pillow) comes with it."""
+its shipped example and its README's against a real server started from the main install and gets
+a typed grasp; nothing of the server's (torch, pybullet, fcl, scipy, fastapi, pydantic, Pillow)
+comes with it."""
 
 from __future__ import annotations
 
 import glob
 import json
+import re
 import shutil
 import subprocess
 import sys
@@ -80,6 +82,10 @@ def test_the_client_alone_gets_a_typed_grasp_from_a_real_server(venvs, server, v
                          text=True, timeout=300, cwd=venvs[version])  # not the checkout
     assert run.returncode == 0, run.stdout + run.stderr
     assert "pre-grasp pose (palm→world)" in run.stdout and "f3_dist" in run.stdout, run.stdout
+    readme = re.findall(r"```python\n(.*?)```", (CLIENT / "README.md").read_text(), re.S)[0]
+    run = subprocess.run([python, "-c", readme.replace("http://127.0.0.1:8000", server.url)],
+                         capture_output=True, text=True, timeout=300, cwd=REPO)
+    assert run.returncode == 0 and "[[" in run.stdout, run.stdout + run.stderr  # its example
     typed = subprocess.run(
         [python, "-c", "import sys, grasp_client, grasp_client.wire as w; "
          "heavy = {'torch', 'scipy', 'pydantic', 'PIL', 'fastapi'} & set(sys.modules); "
