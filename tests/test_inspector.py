@@ -121,8 +121,12 @@ def test_page_renders_in_chromium_and_switches_grasps(session, tmp_path):
             page.click("#grasps li:nth-child(2)")
             assert "selected" in page.get_attribute("#grasps li:nth-child(2)", "class")
             second = canvas.screenshot()
+            page.check("#all")  # the other grasps too
+            everything = canvas.screenshot()
+            listed = page.inner_text("#grasps")
         finally:
             browser.close()
+    (tmp_path / "inspector.png").write_bytes(whole)
     errors = [m for m in messages if m.startswith(("error", "pageerror"))]
     assert not errors, errors
     assert all(r.startswith(url) or r.startswith("data:") for r in requests), requests
@@ -130,12 +134,17 @@ def test_page_renders_in_chromium_and_switches_grasps(session, tmp_path):
     a = np.asarray(Image.open(io.BytesIO(first)).convert("RGB"), dtype=np.int16)
     b = np.asarray(Image.open(io.BytesIO(second)).convert("RGB"), dtype=np.int16)
     assert (np.abs(a - b).sum(axis=-1) > 30).mean() > 0.005  # the picture changed
-    for picture in (a, b):  # framed on the object and the selected hand: they fill the view
-        dark = picture.sum(axis=-1) < 3 * 170  # the hand
+    c = np.asarray(Image.open(io.BytesIO(everything)).convert("RGB"), dtype=np.int16)
+    assert (np.abs(c - b).sum(axis=-1) > 30).mean() > 0.002  # the others appeared
+    assert "approach stop: " in listed and "hold probability" in listed
+    for picture in (a, b):  # framed on the object and where the grasp touches it
         orange = picture[..., 0] - picture[..., 2] > 60  # the completion
+        ys, xs = np.nonzero(orange)
+        h, w = orange.shape
+        assert max((ys.max() - ys.min()) / h, (xs.max() - xs.min()) / w) > 0.3  # not a speck
+        assert 0.2 < xs.mean() / w < 0.8 and 0.2 < ys.mean() / h < 0.8  # in the middle
+        dark = picture.sum(axis=-1) < 3 * 170  # the hand
         ys, xs = np.nonzero(dark | orange)
-        h, w = dark.shape
         assert max((ys.max() - ys.min()) / h, (xs.max() - xs.min()) / w) > 0.5
-    (tmp_path / "inspector.png").write_bytes(whole)
     if os.environ.get("INSPECTOR_SCREENSHOT"):  # how the README's screenshot is made
         shutil.copy(tmp_path / "inspector.png", os.environ["INSPECTOR_SCREENSHOT"])

@@ -93,6 +93,17 @@ function planeMesh([nx, ny, nz, d], centre, size) {
   return plane;
 }
 
+// the world's axes (x red, y green, z blue) drawn at ``origin`` (camera frame), turned as the world
+// is seen from the camera: a wrong camera pose or plane shows as axes that do not match the table
+function worldAxes(cameraToWorld, origin, length) {
+  const worldToCamera = matrix(cameraToWorld).invert();
+  const axes = new THREE.AxesHelper(length);
+  axes.matrixAutoUpdate = false;
+  const turn = new THREE.Matrix4().extractRotation(worldToCamera);
+  axes.matrix.copy(new THREE.Matrix4().makeTranslation(origin.x, origin.y, origin.z).multiply(turn));
+  return axes;
+}
+
 function describe(grasp, index) {
   const joints = Object.entries(grasp.joints_deg)
     .map(([name, value]) => `${name} ${value.toFixed(1)}°`).join(', ');
@@ -101,7 +112,7 @@ function describe(grasp, index) {
     `volume ${grasp.volume.toFixed(3)}<div class="verdict"></div><div class="joints"></div>`;
   item.querySelector('.joints').textContent = joints;
   // what the ranking expects of the lift, and what the lift trials on the completion saw
-  const said = [];
+  const said = [`approach stop: ${grasp.approach_stop}`];
   if (grasp.kind === 'table pinch') {
     said.push(`table pinch: the palm rises ${(1000 * grasp.wrist_rise.end_m).toFixed(0)} mm ` +
       'while the fingers close (outline: where closing starts)');
@@ -172,7 +183,12 @@ async function main() {
     root.add(hand);
     return hand;
   });
-  if (plan.support_plane) root.add(planeMesh(plan.support_plane, centre, 3 * size));
+  if (plan.support_plane) {
+    const table = planeMesh(plan.support_plane, centre, 3 * size);
+    root.add(table);
+    if (plan.camera_pose) root.add(worldAxes(plan.camera_pose, table.position, 0.6 * size));
+  }
+  const showAll = document.getElementById('all');
 
   const fov = 40;
   const camera = new THREE.PerspectiveCamera(fov, viewport.clientWidth / viewport.clientHeight,
@@ -183,22 +199,37 @@ async function main() {
   camera.up.copy(up); // before the controls, which orbit about it
   const controls = new OrbitControls(camera, renderer.domElement);
 
-  // frame the completion and the selected hand so that they fill most of the view, looking
-  // from the depth camera's side (the camera frame's origin) and from above
+  // frame the completion and where the selected grasp touches it (its contacts and the palm's
+  // centre, not the whole hand), looking from the depth camera's side and from above, turned
+  // square to the grasp's approach so that the hand stands beside the object, not before it
   function frame(index) {
     scene.updateMatrixWorld(true);
     const box = new THREE.Box3().setFromObject(completion);
-    if (hands[index]) box.union(new THREE.Box3().setFromObject(hands[index]));
+    const grasp = plan.grasps[index];
+    if (grasp) {
+      const palm = grasp.end_palm_pose || grasp.palm_pose;
+      const points = [[palm[0][3], palm[1][3], palm[2][3]], ...grasp.contacts.map((c) => c.point)];
+      for (const p of points) box.expandByPoint(new THREE.Vector3(...p).applyMatrix4(root.matrixWorld));
+    }
     const sphere = box.getBoundingSphere(new THREE.Sphere());
     const target = sphere.center;
     const toward = target.clone().negate().normalize().addScaledVector(up, 0.6).normalize();
-    const distance = 0.9 * sphere.radius / Math.sin(THREE.MathUtils.degToRad(fov / 2));
+    if (grasp) {
+      const palm = grasp.end_palm_pose || grasp.palm_pose;
+      const approach = new THREE.Vector3(palm[0][2], palm[1][2], palm[2][2])
+        .transformDirection(root.matrixWorld);
+      const side = toward.clone().addScaledVector(approach, -toward.dot(approach));
+      if (side.length() > 0.2) toward.copy(side.normalize());
+      else toward.crossVectors(approach, up).normalize();
+    }
+    const distance = 1.2 * sphere.radius / Math.sin(THREE.MathUtils.degToRad(fov / 2));
     camera.position.copy(target).addScaledVector(toward, distance);
     controls.target.copy(target);
     controls.update();
   }
 
   function select(index) {
+    hands.forEach((hand, i) => { hand.visible = i === index || showAll.checked; });
     hands.forEach((hand, i) => hand.traverse((child) => {
       if (child.isLine) child.material.opacity = i === index ? 1.0 : 0.12;
       if (child.isMesh) {
@@ -212,11 +243,13 @@ async function main() {
     renderer.render(scene, camera);
   }
 
+  let selected = 0;
   plan.grasps.forEach((g, i) => {
     const item = describe(g, i);
-    item.addEventListener('click', () => select(i));
+    item.addEventListener('click', () => { selected = i; select(i); });
     listEl.appendChild(item);
   });
+  showAll.addEventListener('change', () => select(selected));
   controls.addEventListener('change', () => renderer.render(scene, camera));
   window.addEventListener('resize', () => {
     camera.aspect = viewport.clientWidth / viewport.clientHeight;
