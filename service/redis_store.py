@@ -7,6 +7,8 @@ Layout, all under one key prefix (``grasp:`` by default):
   (the shorter ``unseen_ttl_s`` while no view has shown the object);
 - ``<prefix>live``: a sorted set of the session ids scored by their expiry time, for
   ``max_sessions`` and ``/healthz`` (entries past their score are dropped on every count);
+- ``<prefix>answer:<key>``: the answer to a view sent with an ``Idempotency-Key``, kept as long as
+  a session lives;
 - ``<prefix>lock:<id>``: a redis-py lock held while one replica applies a view to the session,
   so that views sent to different replicas queue instead of retrying. It is a short lease
   (``GRASP_LOCK_LEASE_S``, 5 s), renewed from a background thread while its holder works
@@ -226,6 +228,13 @@ class RedisSessionStore(Store):
             pipe.zrem(self._live, session_id)
             deleted, _ = pipe.execute()
         return deleted > 0
+
+    def recall(self, key: str) -> str | None:
+        answer = self.redis.get(f"{self.prefix}answer:{key}")
+        return None if answer is None else answer.decode()
+
+    def remember(self, key: str, answer: str) -> None:
+        self.redis.set(f"{self.prefix}answer:{key}", answer, px=int(1000 * self.ttl_s))
 
     def purge_expired(self) -> int:
         """Redis deletes expired sessions itself; this drops their ids from the live set."""

@@ -14,7 +14,7 @@ from datetime import UTC, datetime
 from typing import Annotated
 
 import numpy as np
-from fastapi import APIRouter, Depends, Path, Query, Request, Response, status
+from fastapi import APIRouter, Depends, Header, Path, Query, Request, Response, status
 
 from completion.mesh import MeshFormat, export_mesh
 from completion.stream import stored_support_plane
@@ -80,6 +80,15 @@ _VIEW_BODY = {
 }
 
 
+IdempotencyKey = Annotated[
+    str | None,
+    Header(max_length=128, pattern=r"^[!-~]+$",
+           description="a key the client chooses per view (a UUID), sent again with every retry "
+           "of it: a view whose key was seen is not applied twice, its first answer comes back "
+           "(kept as long as a session lives)"),
+]
+
+
 @router.post(
     "/views",
     response_model=ViewOut,
@@ -87,10 +96,27 @@ _VIEW_BODY = {
     openapi_extra=_VIEW_BODY,
 )
 async def post_view(
-    parsed: Annotated[ParsedView, Depends(view_body)], services: ServicesDep
+    parsed: Annotated[ParsedView, Depends(view_body)],
+    services: ServicesDep,
+    idempotency_key: IdempotencyKey = None,
 ) -> ViewOut:
     """Add one view to a session (a new one when ``session_id`` is absent). The body is a
-    ``ViewIn``: exactly one of ``points``, ``depth`` with ``intrinsics``, or ``grid``."""
+    ``ViewIn``: exactly one of ``points``, ``depth`` with ``intrinsics``, or ``grid``. With an
+    ``Idempotency-Key`` header, a view sent again with the same key is not applied again: it
+    gets the first answer."""
+    if idempotency_key is None:
+        return await _apply_view(parsed, services)
+    async with services.exclusive(f"idempotency:{idempotency_key}"):
+        kept = await services.io(services.pipeline.store.recall, idempotency_key)
+        if kept is not None:
+            return ViewOut.model_validate_json(kept)
+        out = await _apply_view(parsed, services)
+        await services.io(services.pipeline.store.remember, idempotency_key,
+                          out.model_dump_json())
+        return out
+
+
+async def _apply_view(parsed: ParsedView, services) -> ViewOut:
     view, session_id = parsed.view, parsed.session_id
     if session_id is None:
         session_id, result = await services.infer(services.pipeline.add_view, None, view)

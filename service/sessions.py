@@ -39,6 +39,11 @@ CREATE TABLE IF NOT EXISTS sessions (
     state BLOB NOT NULL
 );
 CREATE INDEX IF NOT EXISTS sessions_updated ON sessions (updated);
+CREATE TABLE IF NOT EXISTS answers (
+    key TEXT PRIMARY KEY,
+    answer TEXT NOT NULL,
+    expires REAL NOT NULL
+);
 """
 
 
@@ -158,8 +163,20 @@ class SessionStore(Store):
             con.executescript("PRAGMA incremental_vacuum;")  # (executescript steps it to the end)
         return cursor.rowcount > 0
 
+    def recall(self, key: str) -> str | None:
+        with closing(self._connect()) as con:
+            row = con.execute("SELECT answer FROM answers WHERE key = ? AND expires > ?",
+                              (key, self.clock())).fetchone()
+        return None if row is None else str(row[0])
+
+    def remember(self, key: str, answer: str) -> None:
+        with closing(self._connect()) as con:
+            con.execute("INSERT OR REPLACE INTO answers (key, answer, expires) VALUES (?, ?, ?)",
+                        (key, answer, self.clock() + self.ttl_s))
+
     def purge_expired(self) -> int:
         with closing(self._connect()) as con:
+            con.execute("DELETE FROM answers WHERE expires <= ?", (self.clock(),))
             cursor = con.execute(f"DELETE FROM sessions WHERE {_EXPIRED}", self._limits())
             con.executescript("PRAGMA incremental_vacuum;")  # the file shrinks back
         if cursor.rowcount:

@@ -109,6 +109,14 @@ class Store:
         """Delete every expired session; returns how many."""
         raise NotImplementedError
 
+    def recall(self, key: str) -> str | None:
+        """The answer (JSON text) kept under an idempotency key, None if none or expired."""
+        raise NotImplementedError
+
+    def remember(self, key: str, answer: str) -> None:
+        """Keep ``answer`` under the idempotency ``key`` for ``ttl_s`` (a session's life)."""
+        raise NotImplementedError
+
     def try_lock(self, session_id: str, *, lease_s: float = LEASE_S):
         """The session's lock across processes if it is free now, None while another holds it;
         never waits. Held until its ``release()``. A store one process owns has nothing to lock

@@ -158,3 +158,21 @@ def test_a_lock_left_for_30_s_delays_no_other_session(replica):
         assert r.headers["Retry-After"] == str(math.ceil(LEASE_S))
         assert "still locked by another replica" in r.json()["detail"]
         assert wait_s - 0.6 < seconds < wait_s + 1.0
+
+
+def test_both_stores_keep_an_idempotent_answer_for_a_sessions_life(redis_url, tmp_path):
+    """Store.recall/remember, behind POST /views's Idempotency-Key: in Redis (shared by the
+    replicas) and in SQLite, gone once a session would be."""
+    from service.sessions import SessionStore
+
+    now = [1000.0]
+    sqlite = SessionStore(tmp_path / "s.sqlite", max_sessions=5, ttl_s=60.0, clock=lambda: now[0])
+    stores = [_store(redis_url, "idem:"), sqlite]
+    for s in stores:
+        assert s.recall("k1") is None
+        s.remember("k1", '{"view_index": 0}')
+        assert s.recall("k1") == '{"view_index": 0}'
+    now[0] += 61  # the SQLite store's clock: past a session's life
+    assert stores[1].recall("k1") is None
+    stores[1].purge_expired()
+    assert stores[0].redis.pttl(f"{stores[0].prefix}answer:k1") > 50_000  # Redis expires it

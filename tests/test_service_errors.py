@@ -300,3 +300,21 @@ def test_unparsable_bodies_say_what_was_expected(client, body, content_type, cod
     text = r.text
     assert "one JSON object in UTF-8" in text and "application/json" in text, text
     assert "object at 0x" not in text  # no Python reprs
+
+
+def test_a_view_resent_with_its_idempotency_key_is_applied_once(client):
+    """A client that lost the answer sends the view again with the same key: the first answer
+    comes back and the session holds the view once; another key is another view."""
+    first = client.post("/views", json=points_view(), headers={"Idempotency-Key": "view-a"})
+    again = client.post("/views", json=points_view(), headers={"Idempotency-Key": "view-a"})
+    assert first.status_code == again.status_code == 200
+    assert again.json() == first.json()
+    sid = first.json()["session_id"]
+    assert client.get(f"/sessions/{sid}").json()["views"] == 1
+    body = points_view(seed=1) | {"session_id": sid}
+    for _ in range(2):
+        r = client.post("/views", json=body, headers={"Idempotency-Key": "view-b"})
+        assert r.status_code == 200 and r.json()["view_index"] == 1
+    assert client.get(f"/sessions/{sid}").json()["views"] == 2
+    r = client.post("/views", json=points_view(), headers={"Idempotency-Key": "bad key"})
+    assert r.status_code == 422 and r.json()["detail"][0]["loc"] == ["header", "idempotency-key"]

@@ -25,6 +25,7 @@ from __future__ import annotations
 import io
 import math
 import time
+import uuid
 from collections.abc import Mapping, Sequence
 from typing import Any
 
@@ -298,7 +299,10 @@ class Session:
             body["session_id"] = self.id
         elif self.support_plane is not None:  # the session keeps it from its first view
             body["support_plane"] = self.support_plane
-        out = self.client.request("POST", "/views", json=body).json()
+        # one key per view, the same on every retry: a view whose answer was lost is not applied
+        # twice (the service keeps the first answer under it)
+        key = {"Idempotency-Key": uuid.uuid4().hex}
+        out = self.client.request("POST", "/views", json=body, headers=key).json()
         self.id = out["session_id"]
         return out
 
