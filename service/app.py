@@ -110,7 +110,10 @@ async def _lifespan(app: FastAPI) -> AsyncIterator[None]:
         ),
     )
     log.info("model %s (weights %s), store %s", settings.model, pipeline.model_id, store.where)
-    app.state.services.planner.warm_up()
+    # every worker process started (and the planner imported) before /healthz answers: the first
+    # requests pay nothing, and a cold server's memory is a warm one's
+    started = [*app.state.services.planner.warm_up(), *app.state.services.parser.warm_up()]
+    await anyio.to_thread.run_sync(lambda: [f.result() for f in started])
     sweeper = asyncio.create_task(_purge_expired(store))
     try:
         yield

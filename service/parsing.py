@@ -30,8 +30,9 @@ from fastapi import HTTPException, Request, status
 from fastapi.exceptions import RequestValidationError
 from pydantic import ValidationError
 
+from service import workers
 from service.inputs import DecodedView, InputError, decode_view
-from service.memory import ByteBudget, body_cost, decode_cost, return_freed_memory
+from service.memory import ByteBudget, body_cost, decode_cost
 from service.schemas import ViewIn
 
 #: Bodies up to this size are parsed in a thread of the server process.
@@ -170,10 +171,15 @@ class BodyParser:
         self._at_once = asyncio.Semaphore(at_once)
 
     def _processes(self) -> ProcessPoolExecutor:
-        if self._pool is None:  # started on the first big body: most servers never see one
+        if self._pool is None:  # started with the server (warm_up)
             self._pool = ProcessPoolExecutor(self.workers, mp_context=mp.get_context("spawn"),
-                                             initializer=return_freed_memory)
+                                             initializer=workers.start)
         return self._pool
+
+    def warm_up(self) -> list:
+        """Start the decoding processes now (the futures, to wait on), so that the first big
+        body pays nothing and a cold server's memory is its warm one's."""
+        return [self._processes().submit(workers.ready) for _ in range(self.workers)]
 
     @asynccontextmanager
     async def view(self, request: Request) -> AsyncIterator[ParsedView]:

@@ -25,7 +25,6 @@ import asyncio
 import hashlib
 import logging
 import multiprocessing
-import os
 import time
 from collections import OrderedDict
 from collections.abc import Awaitable, Callable
@@ -35,6 +34,8 @@ from functools import partial
 
 import anyio.to_thread
 import numpy as np
+
+from service import workers
 
 log = logging.getLogger(__name__)
 
@@ -124,7 +125,8 @@ class Planner:
             # spawn: the server has torch's thread pools running, which fork does not survive.
             context = multiprocessing.get_context("spawn")
             self._pool = ProcessPoolExecutor(
-                self.workers, mp_context=context, initializer=os.nice, initargs=(PLANNER_NICENESS,)
+                self.workers, mp_context=context, initializer=workers.start,
+                initargs=(PLANNER_NICENESS,)
             )
         return self._pool
 
@@ -270,11 +272,11 @@ class Planner:
         """Plans admitted and not finished (running or waiting for a worker)."""
         return self._pending
 
-    def warm_up(self) -> None:
-        """Start the worker processes and import the planner there, without waiting for it."""
-        if self.processes:
-            for _ in range(self.workers):
-                self._executor().submit(_import_planner)
+    def warm_up(self) -> list:
+        """Start the worker processes and import the planner there; the futures, to wait on."""
+        if not self.processes:
+            return []
+        return [self._executor().submit(_import_planner) for _ in range(self.workers)]
 
     def close(self) -> None:
         if self._pool is not None:

@@ -214,3 +214,43 @@ def test_a_422_lists_at_most_twenty_errors_and_counts_the_rest(client):
     assert len(detail) == MAX_ERRORS + 1 and len(r.content) < 64 * 1024
     assert detail[-1]["type"] == "too_many_errors" and "more errors" in detail[-1]["msg"]
     assert all(e["loc"][:2] == ["body", "points"] for e in detail[:-1])
+
+
+def test_a_killed_server_leaves_no_process_and_its_pools_start_with_it(tmp_path, tiny_model):
+    """Both worker pools (planners, big-body decoders) are running when /healthz first answers;
+    after kill -9 of the server none of its processes is left 5 s later (they watch their
+    parent: service/workers.py)."""
+    server = Server(tmp_path, tiny_model, tmp_path / "store.sqlite", planning_workers=2)
+    try:
+        family = _descendants(server.process.pid)
+        spawned = [pid for pid, command in family.items() if "multiprocessing" in command]
+        assert len(spawned) >= 2 + 2, family  # 2 planners + 2 decoders (and the tracker)
+    finally:
+        server.kill()
+    deadline = time.monotonic() + 5.0
+    while time.monotonic() < deadline and _alive(family):
+        time.sleep(0.1)
+    assert not _alive(family), _alive(family)
+
+
+def _descendants(root: int) -> dict[int, str]:
+    """pid -> command line of every process below ``root`` (ps)."""
+    table = subprocess.run(["ps", "-eo", "pid=,ppid=,args="], capture_output=True, text=True,
+                           check=True).stdout.splitlines()
+    rows = [line.split(None, 2) for line in table if line.strip()]
+    children: dict[int, list[tuple[int, str]]] = {}
+    for pid, ppid, *command in rows:
+        children.setdefault(int(ppid), []).append((int(pid), command[0] if command else ""))
+    out, todo = {}, [root]
+    while todo:
+        for pid, command in children.get(todo.pop(), []):
+            out[pid] = command
+            todo.append(pid)
+    return out
+
+
+def _alive(pids) -> list[int]:
+    """Those of ``pids`` that still run (not zombies)."""
+    states = subprocess.run(["ps", "-o", "pid=,stat=", "-p", ",".join(map(str, pids))],
+                            capture_output=True, text=True).stdout.split()
+    return [int(p) for p, st in zip(states[::2], states[1::2], strict=True) if "Z" not in st]
