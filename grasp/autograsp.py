@@ -23,7 +23,9 @@ The fingers do not touch each other in this model (finger–finger and finger–
 not checked; at spread 0 fingers 1/2 pass beside finger 3), so each finger's motion depends only
 on the object and the three close independently, which is the same as closing them together.
 
-Collision queries go to :class:`grasp.collision.CollisionScene` (python-fcl): a boolean overlap test
+The stepping search, the approach and a finger's closing live in :mod:`grasp.closing`; the table
+pinch's closing in :mod:`grasp.pinch`. Collision queries go to
+:class:`grasp.collision.CollisionScene` (python-fcl): a boolean overlap test
 per moving link with early exit, ~10-40 µs. Speed: a convex polytope around the object (k-DOP)
 gives a lower bound d on the distance to the object (fcl GJK), and no point of a moving link
 travels faster than R per unit of motion (R from the link corners), so a step of d / R is
@@ -46,23 +48,22 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, NamedTuple
 
 import numpy as np
 import trimesh
 
+from grasp.closing import MAX_BACKOFF_M, Search, approach_until_contact, close_finger, shift
 from grasp.collision import CollisionScene, Contact, check_pose
-from grasp.pinch import TABLE_PINCH, close_rising, faces_table, profile, rise
+from grasp.pinch import TABLE_PINCH, close_pinching, faces_table
 from grasp.quality import EPSILON_NO_CLOSURE, MU_RUBBER, contacts_quality
 from grasp.table import SupportPlane
-from grasp_client.wire import WristRise
 from hands.barrett import FINGERS, JOINT_NAMES
-from hands.barrett.kinematics import rotation_about
 
 if TYPE_CHECKING:
-    from grasp_client.wire import Verification
+    from grasp_client.wire import Verification, WristRise
 
 __all__ = [
     "Contact",
@@ -80,14 +81,6 @@ __all__ = [
 DEFAULT_CLOSE_STEP_DEG = math.degrees(0.01)
 #: GraspIt!'s approach step: 10 mm.
 DEFAULT_APPROACH_STEP_M = 0.010
-#: Bisection tolerances: approach (metres) and finger DOF (radians).
-APPROACH_TOL_M = 1e-5
-ANGLE_TOL_RAD = 1e-4
-#: Among plain steps (near the bounding polytope), ask its distance again every this many: a
-#: link that moved away from it (a finger sweeping past the object) takes long steps again.
-_HULL_RECHECK_STEPS = 2
-#: Give up backing off out of collision after this distance.
-MAX_BACKOFF_M = 1.0
 _NO_CONTACT = "no contact: the hand closed on nothing"
 _NOT_SCORED = "quality not computed"
 #: Joint-error protocol: back off this far along the approach axis before regrasping.
@@ -191,7 +184,7 @@ class GraspResult:
         ``palm_pose`` risen by ``wrist_rise.end_m`` along its −z."""
         if self.wrist_rise is None:
             return self.palm_pose
-        return _shift(np.asarray(self.palm_pose), -self.wrist_rise.end_m)
+        return shift(np.asarray(self.palm_pose), -self.wrist_rise.end_m)
 
     def joint(self, name: str) -> float:
         """One joint angle (degrees) by name, e.g. ``result.joint("f3_prox")``."""
@@ -230,16 +223,9 @@ class GraspResult:
 
 
 # -- helpers ---------------------------------------------------------------------------------------
-def _shift(pose: np.ndarray, distance: float) -> np.ndarray:
-    """``pose`` moved by ``distance`` along its own +z axis."""
-    out = pose.copy()
-    out[:3, 3] += distance * pose[:3, 2]
-    return out
-
-
 def pregrasp_pose(palm_pose: np.ndarray, backoff: float = PREGRASP_BACKOFF_M) -> np.ndarray:
     """(4, 4) palm pose backed off by ``backoff`` metres along its approach axis (−z)."""
-    return _shift(check_pose(palm_pose), -float(backoff))
+    return shift(check_pose(palm_pose), -float(backoff))
 
 
 def _scene_of(
@@ -250,203 +236,6 @@ def _scene_of(
     if isinstance(mesh, trimesh.Trimesh):
         return CollisionScene(mesh, support_plane=support_plane)
     raise ValueError(f"mesh must be a trimesh.Trimesh or a CollisionScene, got {type(mesh)}")
-
-
-def _speed_bounds(scene: CollisionScene, finger: str) -> tuple[float, float]:
-    """Largest speed (m per rad of DOF) of any point of the finger: coupled closing, breakaway."""
-    kin = scene.kinematics
-    ratio = kin.params.distal_ratio
-    lever = float(np.linalg.norm(kin.joint(f"{finger}_dist").origin[:3, 3]))  # J2 → J3
-    prox = np.linalg.norm(scene.links[f"{finger}_prox"].corners, axis=1).max()
-    dist = np.linalg.norm(scene.links[f"{finger}_dist"].corners, axis=1).max()
-    # a distal point moves at most |p − J2| + ratio·|p − J3| per radian while both joints turn
-    return float(max(prox, lever + dist + ratio * dist)), float(ratio * dist)
-
-
-class _Search:
-    """First contact of some moving links along a 1-D motion parameter (stepping + bisection)."""
-
-    def __init__(self, scene: CollisionScene) -> None:
-        self.scene = scene
-        self._last_hit: str | None = None  # checked first: it decides most bisection queries
-
-    def collides(self, poses: dict[str, np.ndarray]) -> bool:
-        last = self._last_hit
-        if last in poses and self.scene.link_collides(last, poses[last]):
-            return True
-        for link, pose in poses.items():
-            if link != last and self.scene.link_collides(link, pose):
-                self._last_hit = link
-                return True
-        return False
-
-    def free_distance(self, poses: dict[str, np.ndarray]) -> float:
-        return min(self.scene.hull_distance(link, pose) for link, pose in poses.items())
-
-    def first_contact(
-        self,
-        poses_at: Callable[[float], dict[str, np.ndarray]],
-        start: float,
-        stop: float,
-        *,
-        step: float,
-        speed: float,
-        tol: float,
-    ) -> tuple[float, list[str]]:
-        """Largest free parameter before the first collision in [start, stop], and the links hit.
-
-        ``speed`` bounds how far (metres) any point of the moving links travels per unit of the
-        parameter. The links hit are those overlapping the object at the end of the bisected
-        interval. Returns (stop, []) when nothing is hit.
-        """
-        poses = poses_at(start)
-        if self.collides(poses):
-            return start, self.scene.colliding_links(poses)
-        lo, use_hull, plain = start, True, 0
-        while lo < stop:
-            jump = 0.0
-            if use_hull or plain >= _HULL_RECHECK_STEPS:
-                # a step of d / speed cannot reach the bounding polytope, hence not the object
-                jump = self.free_distance(poses) / speed
-                use_hull = jump > step  # close to the object: plain steps, checked now and then
-                plain = 0
-            plain += jump <= step
-            hi = min(lo + max(step, jump), stop)
-            poses = poses_at(hi)
-            if not self.collides(poses):
-                lo = hi
-                continue
-            while hi - lo > tol:
-                mid = 0.5 * (lo + hi)
-                mid_poses = poses_at(mid)
-                if self.collides(mid_poses):
-                    hi, poses = mid, mid_poses
-                else:
-                    lo = mid
-            return lo, self.scene.colliding_links(poses)
-        return stop, []
-
-
-def _approach(
-    search: _Search,
-    palm: np.ndarray,
-    joints_rad: np.ndarray,
-    *,
-    max_travel: float,
-    step: float,
-) -> tuple[np.ndarray, float, bool] | None:
-    """Back off out of collision, then move along +z to the first contact: the palm pose, the
-    travel and whether it touched. None if stuck."""
-    scene = search.scene
-    local = scene.kinematics.link_poses(joints_rad)
-
-    def poses_at(t: float) -> dict[str, np.ndarray]:
-        moved = _shift(palm, t)
-        return {link: moved @ pose for link, pose in local.items()}
-
-    back = 0.0
-    while search.collides(poses_at(-back)):
-        back += step
-        if back > MAX_BACKOFF_M:
-            return None
-    start = -back
-    travel, hit = search.first_contact(
-        poses_at, start, start + max_travel, step=step, speed=1.0, tol=APPROACH_TOL_M
-    )
-    return _shift(palm, travel), travel, bool(hit)
-
-
-def _close_finger(
-    search: _Search,
-    knuckle: np.ndarray,
-    finger: str,
-    step: float,
-    start: float = 0.0,
-    frozen_j2: float | None = None,
-) -> tuple[float, float, float, str]:
-    """Close one finger from DOF ``start`` (radians; open by default), its J2 stopped at
-    ``frozen_j2`` when it broke away already. Returns (DOF, J2, J3) in radians and what stopped
-    it."""
-    kin = search.scene.kinematics
-    params = kin.params
-    ratio = params.distal_ratio
-    dof_max = math.radians(params.finger_dof_max_deg)
-    j2_max = math.radians(params.proximal_max_deg)
-    prox_name, dist_name = f"{finger}_prox", f"{finger}_dist"
-    speed_both, speed_distal = _speed_bounds(search.scene, finger)
-
-    def coupled(q: float) -> dict[str, np.ndarray]:
-        prox, dist = kin.finger_poses(knuckle, finger, min(q, j2_max), ratio * q)
-        return {prox_name: prox, dist_name: dist}
-
-    if frozen_j2 is None:
-        q, hit = search.first_contact(
-            coupled, start, dof_max, step=step, speed=speed_both, tol=ANGLE_TOL_RAD
-        )
-        if not hit:
-            return q, min(q, j2_max), ratio * q, "limit"
-        if dist_name in hit:
-            return q, min(q, j2_max), ratio * q, "distal"
-        j2 = min(q, j2_max)
-    else:
-        q, j2 = start, frozen_j2
-    # breakaway: J2 frozen, the DOF keeps rising and J3 follows it
-    prox_pose, _ = kin.finger_poses(knuckle, finger, j2, 0.0)
-    j3_frame = prox_pose @ kin.joint(dist_name).origin
-    turn = rotation_about(kin.joint(dist_name).axis)
-
-    def distal_only(dof: float) -> dict[str, np.ndarray]:
-        return {dist_name: j3_frame @ turn(ratio * dof)}
-
-    q2, hit2 = search.first_contact(
-        distal_only, q, dof_max, step=step, speed=speed_distal, tol=ANGLE_TOL_RAD
-    )
-    return q2, j2, ratio * q2, "breakaway-distal" if hit2 else "breakaway-limit"
-
-
-def _close_pinching(
-    search: _Search, palm: np.ndarray, spread: float, step: float
-) -> tuple[np.ndarray, list[tuple[float, float, float, str]], WristRise]:
-    """Close a table pinch (:mod:`grasp.pinch`) from ``palm``: the lock-step phase with the palm
-    rising, then each finger that touched closes on from where it stopped (the palm where the
-    rise ended). Returns the palm where closing ended, (DOF, J2, J3, stop) per finger (radians)
-    and the rise."""
-    kin = search.scene.kinematics
-    params = kin.params
-    ratio = params.distal_ratio
-    dof_max = math.radians(params.finger_dof_max_deg)
-    j2_max = math.radians(params.proximal_max_deg)
-    knuckles = {f: kin.knuckle_pose(f, math.radians(spread)) for f in FINGERS}
-
-    def poses_at(dof: float, moving: dict[str, tuple[str, float]], floor: float):
-        lifted, out = _shift(palm, -max(float(rise(math.degrees(dof), params)), floor)), {}
-        for f, (mode, j2) in moving.items():
-            coupled = mode == "coupled"
-            prox, dist = kin.finger_poses(lifted @ knuckles[f], f,
-                                          min(dof, j2_max) if coupled else j2, ratio * dof)
-            if coupled:  # a broken-away proximal rests on the object, only the distal closes
-                out[f"{f}_prox"] = prox
-            out[f"{f}_dist"] = dist
-        return out
-
-    dofs, rises = profile(params)
-    slope = float(np.max(np.abs(np.diff(rises)) / np.radians(np.diff(dofs))))  # m per rad
-    speed = max(_speed_bounds(search.scene, f)[0] for f in FINGERS) + slope
-    stopped = close_rising(poses_at, search.first_contact, dof_max=dof_max, j2_max=j2_max,
-                           step=step, speed=speed, tol=ANGLE_TOL_RAD)
-    end = max(float(rise(math.degrees(q), params)) for _, q, _ in stopped.values())
-    lifted = _shift(palm, -end)
-    fingers = []
-    for f in FINGERS:
-        stop, q, j2 = stopped[f]
-        if stop.endswith("distal"):  # still driven: it closes on to the object, if the palm's
-            # motion took it off (the palm now still)
-            frozen = j2 if stop.startswith("breakaway") else None
-            fingers.append(_close_finger(search, lifted @ knuckles[f], f, step, q, frozen))
-        else:
-            fingers.append((q, j2, ratio * q, stop))
-    wrist = WristRise(dofs.tolist(), rises.tolist(), end)
-    return lifted, fingers, wrist
 
 
 # -- public API ------------------------------------------------------------------------------------
@@ -514,11 +303,12 @@ def autograsp(
                          "(palm +z along the plane's −n)")
     spread = math.radians(spread_deg)
     open_rad = np.radians([spread_deg, 0, 0, spread_deg, 0, 0, 0, 0])
-    search = _Search(scene)
+    search = Search(scene)
 
     travel, approach_stop = 0.0, "none"
     if approach:
-        moved = _approach(search, palm, open_rad, max_travel=max_travel, step=approach_step)
+        moved = approach_until_contact(search, palm, open_rad, max_travel=max_travel,
+                                       step=approach_step)
         if moved is None:
             joints = HandJoints(*np.degrees(open_rad))
             return GraspResult(
@@ -542,9 +332,9 @@ def autograsp(
     step = math.radians(close_step_deg)
     start, wrist_rise = palm, None
     if pinch:
-        palm, closed, wrist_rise = _close_pinching(search, start, spread_deg, step)
+        palm, closed, wrist_rise = close_pinching(search, start, spread_deg, step)
     else:
-        closed = [_close_finger(search, palm @ scene.kinematics.knuckle_pose(finger, spread),
+        closed = [close_finger(search, palm @ scene.kinematics.knuckle_pose(finger, spread),
                                 finger, step) for finger in FINGERS]
     dofs, joints, stops = [], {}, []
     for finger, (q, j2, j3, stop) in zip(FINGERS, closed, strict=True):

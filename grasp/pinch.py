@@ -42,11 +42,13 @@ from collections.abc import Callable, Sequence
 
 import numpy as np
 
+from grasp.closing import ANGLE_TOL_RAD, Search, close_finger, shift, speed_bounds
 from grasp.table import SupportPlane
+from grasp_client.wire import WristRise
 from hands.barrett import BH8_282, FINGERS, BarrettParams, HandKinematics
 
-__all__ = ["PROFILE_STEP_DEG", "TABLE_PINCH", "TIP_CLEARANCE_M", "close_rising", "depth",
-           "faces_table", "pinch_failure", "pinch_height", "profile", "rise"]
+__all__ = ["PROFILE_STEP_DEG", "TABLE_PINCH", "TIP_CLEARANCE_M", "close_pinching", "close_rising",
+           "depth", "faces_table", "pinch_failure", "pinch_height", "profile", "rise"]
 
 #: The grasp kind (``GraspResult.kind``, the wire's ``kind``).
 TABLE_PINCH = "table pinch"
@@ -116,7 +118,7 @@ def close_rising(
     commanded DOF ``dof`` (radians) with the palm risen to the larger of :func:`rise` of it and
     ``floor`` (the stopped fingers' rise, metres); ``moving`` maps each closing finger to
     ("coupled", 0) or ("breakaway", frozen J2). ``first_contact`` is
-    :meth:`grasp.autograsp._Search.first_contact`.
+    :meth:`grasp.closing.Search.first_contact`.
 
     Returns per finger (how it stopped, DOF, J2):
     "distal" / "breakaway-distal" (touched; the caller closes it on from there, the palm fixed),
@@ -166,6 +168,51 @@ def pinch_failure(results: Sequence) -> str | None:
     if missed:
         said += f", {', '.join(missed)} closed under the palm untouched (it lies between them)"
     return said
+
+
+def close_pinching(
+    search: Search, palm: np.ndarray, spread: float, step: float
+) -> tuple[np.ndarray, list[tuple[float, float, float, str]], WristRise]:
+    """Close a table pinch (:mod:`grasp.pinch`) from ``palm``: the lock-step phase with the palm
+    rising, then each finger that touched closes on from where it stopped (the palm where the
+    rise ended). Returns the palm where closing ended, (DOF, J2, J3, stop) per finger (radians)
+    and the rise."""
+    kin = search.scene.kinematics
+    params = kin.params
+    ratio = params.distal_ratio
+    dof_max = math.radians(params.finger_dof_max_deg)
+    j2_max = math.radians(params.proximal_max_deg)
+    knuckles = {f: kin.knuckle_pose(f, math.radians(spread)) for f in FINGERS}
+
+    def poses_at(dof: float, moving: dict[str, tuple[str, float]], floor: float):
+        lifted, out = shift(palm, -max(float(rise(math.degrees(dof), params)), floor)), {}
+        for f, (mode, j2) in moving.items():
+            coupled = mode == "coupled"
+            prox, dist = kin.finger_poses(lifted @ knuckles[f], f,
+                                          min(dof, j2_max) if coupled else j2, ratio * dof)
+            if coupled:  # a broken-away proximal rests on the object, only the distal closes
+                out[f"{f}_prox"] = prox
+            out[f"{f}_dist"] = dist
+        return out
+
+    dofs, rises = profile(params)
+    slope = float(np.max(np.abs(np.diff(rises)) / np.radians(np.diff(dofs))))  # m per rad
+    speed = max(speed_bounds(search.scene, f)[0] for f in FINGERS) + slope
+    stopped = close_rising(poses_at, search.first_contact, dof_max=dof_max, j2_max=j2_max,
+                           step=step, speed=speed, tol=ANGLE_TOL_RAD)
+    end = max(float(rise(math.degrees(q), params)) for _, q, _ in stopped.values())
+    lifted = shift(palm, -end)
+    fingers = []
+    for f in FINGERS:
+        stop, q, j2 = stopped[f]
+        if stop.endswith("distal"):  # still driven: it closes on to the object, if the palm's
+            # motion took it off (the palm now still)
+            frozen = j2 if stop.startswith("breakaway") else None
+            fingers.append(close_finger(search, lifted @ knuckles[f], f, step, q, frozen))
+        else:
+            fingers.append((q, j2, ratio * q, stop))
+    wrist = WristRise(dofs.tolist(), rises.tolist(), end)
+    return lifted, fingers, wrist
 
 
 @functools.lru_cache(maxsize=8)
