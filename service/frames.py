@@ -38,7 +38,7 @@ STILL_M = 0.02
 #: (within the tolerance) ...
 TABLE_SHARE = 0.10
 #: ... and at least this many times the share a plane cutting across the background at random
-#: would hold (the tolerance's slab against the background's spread of heights).
+#: would hold (the tolerance's slab against the background's spread of heights), or half of it.
 TABLE_CONCENTRATION = 3.0
 FRAMES = ("OpenCV optical: x right, y down, z forward; camera_pose is camera→world in metres; "
           "support_plane is [nx, ny, nz, d] in the world frame, n pointing up")
@@ -143,7 +143,8 @@ def _table_seen(background, pose, plane, limits) -> bool | None:
     share = float(np.mean(np.abs(heights) <= limits.plane_tolerance_m))
     lo, hi = np.percentile(heights, [5, 95])
     chance = min(1.0, 2.0 * limits.plane_tolerance_m / max(float(hi - lo), 1e-9))
-    return share >= TABLE_SHARE and share >= TABLE_CONCENTRATION * chance
+    # a background that is all table (a spread within the tolerance) is the table
+    return share >= TABLE_SHARE and share >= min(TABLE_CONCENTRATION * chance, 0.5)
 
 
 def _likely_mistake(view: DecodedView, plane, previous, limits) -> str | None:

@@ -184,3 +184,18 @@ def free_url():
     from service_helpers import free_port
 
     return f"http://127.0.0.1:{free_port()}"
+
+
+def test_a_view_whose_background_is_all_table_is_accepted(server, table_scene):
+    """A camera that sees nothing but the table around the object (the background's heights
+    within a few mm of the plane), the object's lowest point above the tolerance: accepted (a
+    regression: a flat background once counted as no table)."""
+    from service.load import make_bodies
+
+    bodies = make_bodies(4, 2, 1, "tabletop")[2]  # an object whose lowest seen point is 3.7 cm up
+    sid = None
+    for body in bodies:
+        r = httpx.post(f"{server.url}/views", json=body | ({"session_id": sid} if sid else {}),
+                       timeout=60)
+        assert r.status_code == 200, r.text
+        sid = r.json()["session_id"]
