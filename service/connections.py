@@ -189,6 +189,8 @@ class GuardedH11Protocol(H11Protocol):
             return
         if self._answered_early() and self._over_drain(len(data)):
             return  # else uvicorn discards the rest of the body and reads the next request
+        if self.phase == "head" and self._head_over_limit(data):
+            return
         super().data_received(data)
         self._watch()
 
@@ -219,19 +221,43 @@ class GuardedH11Protocol(H11Protocol):
         line alone is over it, else 431; then a lingering close, so that a client still sending
         the head reads the answer rather than a reset."""
         received, _ = self.conn.trailing_data
-        limit = self.limits.max_head_bytes
-        if len(received) <= limit:
+        if len(received) <= self.limits.max_head_bytes:
             super().send_400_response(msg)
             return
-        line_end = received.find(b"\r\n")
-        if line_end < 0 or line_end > limit:
-            status, detail = 414, (f"the request line (method, URL, version) is over "
-                                   f"{limit} bytes (GRASP_MAX_HEAD_BYTES): send data in the body")
-        else:
-            status, detail = 431, (f"the request line and headers are over {limit} bytes "
-                                   "together (GRASP_MAX_HEAD_BYTES)")
-        self._answer(status, detail)
+        self._answer(*self._head_refusal(received))
         self._linger(until=self.loop.time() + self.limits.header_timeout_s, framed=False)
+
+    def _head_over_limit(self, data: bytes) -> bool:
+        """Refuse a head over ``max_head_bytes`` however it arrives: h11 stops an incomplete
+        head at that size (:meth:`send_400_response`) but parses a complete one of any size, so
+        a 100 KB URL sent in one write got through. True when refused (answered, lingering)."""
+        received, _ = self.conn.trailing_data
+        limit = self.limits.max_head_bytes
+        if len(received) + len(data) <= limit:
+            return False
+        head = received + data
+        end = head.find(b"\r\n\r\n")
+        if 0 <= end <= limit - 4:
+            return False  # a head within the limit, and the start of a body or the next request
+        status, detail = self._head_refusal(head)
+        body = json.dumps({"detail": detail}).encode()  # raw: h11 has seen no request to answer
+        headers = [*self.server_state.default_headers, (b"content-type", b"application/json"),
+                   (b"content-length", str(len(body)).encode()), (b"connection", b"close")]
+        lines = [b"HTTP/1.1 %d %s" % (status, STATUS_PHRASES[status]),
+                 *(name + b": " + value for name, value in headers)]
+        self.socket.write(b"\r\n".join(lines) + b"\r\n\r\n" + body)
+        self._linger(until=self.loop.time() + self.limits.header_timeout_s, framed=False)
+        return True
+
+    def _head_refusal(self, head: bytes) -> tuple[int, str]:
+        """414 when the request line alone is over the limit, else 431, with what to do."""
+        limit = self.limits.max_head_bytes
+        line_end = head.find(b"\r\n")
+        if line_end < 0 or line_end > limit:
+            return 414, (f"the request line (method, URL, version) is over {limit} bytes "
+                         "(GRASP_MAX_HEAD_BYTES): send data in the body")
+        return 431, (f"the request line and headers are over {limit} bytes together "
+                     "(GRASP_MAX_HEAD_BYTES)")
 
     def _answered_early(self) -> bool:
         """The answer is out while the client is still sending the request body."""

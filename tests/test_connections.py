@@ -13,7 +13,7 @@ import urllib.request
 
 import httpx
 import pytest
-from service_helpers import Server
+from service_helpers import Server, points_view
 
 MB = 1024 * 1024
 TOKEN = "s3cret"
@@ -188,6 +188,34 @@ def test_an_over_long_url_gets_414_and_long_headers_431_readable_by_every_client
     finally:
         conn.close()
     assert httpx.get(f"{server.url}/healthz").status_code == 200
+
+
+@pytest.mark.parametrize(("where", "size", "status"), [
+    ("url", 17 * 1024, 414), ("url", 100 * 1024, 414),
+    ("header", 17 * 1024, 431), ("header", 100 * 1024, 431)])
+def test_a_head_over_the_limit_in_one_write_is_refused(server, where, size, status):
+    """GRASP_MAX_HEAD_BYTES holds however the head arrives: sent in one write, a 17 or 100 KB
+    URL or header is refused as one sent in pieces is (h11 parses a complete head of any size);
+    a head within the limit followed by its body in the same write is served."""
+    line = f"GET /healthz?pad={'a' * size} HTTP/1.1" if where == "url" else "GET /healthz HTTP/1.1"
+    extra = f"x-padding: {'b' * size}\r\n" if where == "header" else ""
+    with socket.create_connection(("127.0.0.1", server.port), timeout=10) as sock:
+        sock.sendall(f"{line}\r\nhost: x\r\n{extra}\r\n".encode())
+        reply = b""
+        while chunk := sock.recv(65536):
+            reply += chunk
+    head, _, body = reply.partition(b"\r\n\r\n")
+    assert head.startswith(f"HTTP/1.1 {status} ".encode()), head[:100]
+    assert "GRASP_MAX_HEAD_BYTES" in json.loads(body)["detail"]
+    body = json.dumps(points_view()).encode()
+    with socket.create_connection(("127.0.0.1", server.port), timeout=30) as sock:
+        sock.sendall(b"POST /views HTTP/1.1\r\nhost: x\r\ncontent-type: application/json\r\n"
+                     b"authorization: Bearer " + TOKEN.encode() + b"\r\nconnection: close\r\n"
+                     b"content-length: " + str(len(body)).encode() + b"\r\n\r\n" + body)
+        reply = b""
+        while chunk := sock.recv(65536):
+            reply += chunk
+    assert reply.startswith(b"HTTP/1.1 200 "), reply[:200]
 
 
 def test_refused_connections_are_logged_once_per_address_and_interval():
