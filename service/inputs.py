@@ -104,12 +104,12 @@ def decode_view(
     depth = _depth(view.depth, max_image_pixels)  # (H, W) uint16 mm or float32 m, as sent
     _plausible_intrinsics(view.intrinsics, depth.shape)
     mask = None if view.mask is None else _mask(view.mask, depth.shape, view.object_label)
-    _some_depth(depth, mask, view.depth.encoding)
     step = thinning_step(depth, mask, max_points)
     k = view.intrinsics
     if step > 1:  # every step-th pixel along both axes: the same camera at a lower resolution
         depth = depth[::step, ::step].copy()  # copies, so that the full images are freed now
         mask = None if mask is None else mask[::step, ::step].copy()
+    _some_depth(depth, mask, view.depth.encoding)  # on the thinned image: no full-size copies
     intrinsics = Intrinsics(k.fx / step, k.fy / step, k.cx / step, k.cy / step,
                             width=depth.shape[1], height=depth.shape[0])
     metres = depth.astype(np.float64)
@@ -132,7 +132,10 @@ def _background(metres: np.ndarray, intrinsics: Intrinsics, mask: np.ndarray) ->
     """Up to :data:`BACKGROUND_POINTS` back-projected pixels outside ``mask`` with valid depth
     (the table, where the camera sees it), every s-th pixel along both axes."""
     outside = ~mask & np.isfinite(metres) & (metres > 0)
-    step = max(1, int(np.ceil(np.sqrt(outside.sum() / BACKGROUND_POINTS))))
+    count = int(outside.sum())
+    if count < 50:  # too little to tell the table by (service.frames); nothing allocated
+        return None
+    step = max(1, int(np.ceil(np.sqrt(count / BACKGROUND_POINTS))))
     sub = Intrinsics(intrinsics.fx / step, intrinsics.fy / step, intrinsics.cx / step,
                      intrinsics.cy / step, width=metres[::step, ::step].shape[1],
                      height=metres[::step, ::step].shape[0])

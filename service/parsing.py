@@ -26,6 +26,7 @@ from dataclasses import dataclass
 from functools import partial
 
 import anyio.to_thread
+import numpy as np
 from fastapi import HTTPException, Request, status
 from fastapi.exceptions import RequestValidationError
 from pydantic import ValidationError
@@ -152,6 +153,22 @@ def parse_view(raw: bytes, content_type: str | None, **limits) -> tuple:
     return "ok", ParsedView(view.session_id, decoded)
 
 
+def _warm_decoder() -> bool:
+    """A worker's first task: parse and decode two small views (a depth PNG and float32 metres,
+    with a mask), so that what decoding loads on first use (PNG codecs, validators) is loaded
+    before the server answers, not during the first burst of big bodies."""
+    from grasp_client.wire import b64, depth_f32_m, depth_png16_mm, png_bytes
+
+    depth = np.full((24, 32), 0.6, dtype=np.float32)
+    ok = True
+    for encoded in (depth_png16_mm(depth), depth_f32_m(depth)):
+        body = {"depth": encoded, "mask": b64(png_bytes(np.ones((24, 32), np.uint8))),
+                "intrinsics": {"fx": 28.0, "fy": 28.0, "cx": 15.5, "cy": 11.5}}
+        ok &= parse_view(json.dumps(body).encode(), "application/json",
+                         max_image_pixels=1 << 20, max_points=1 << 20)[0] == "ok"
+    return ok
+
+
 class BodyParser:
     """Reads and parses view bodies within the memory budgets of :mod:`service.memory`: small
     ones in a thread, big ones in ``workers`` processes."""
@@ -179,7 +196,7 @@ class BodyParser:
     def warm_up(self) -> list:
         """Start the decoding processes now (the futures, to wait on), so that the first big
         body pays nothing and a cold server's memory is its warm one's."""
-        return [self._processes().submit(workers.ready) for _ in range(self.workers)]
+        return [self._processes().submit(_warm_decoder) for _ in range(self.workers)]
 
     @asynccontextmanager
     async def view(self, request: Request) -> AsyncIterator[ParsedView]:

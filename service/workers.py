@@ -33,8 +33,3 @@ def _watch(parent: int) -> None:
     while os.getppid() == parent:
         time.sleep(WATCH_S)
     os._exit(0)  # the server died: nothing is waiting for this worker's results
-
-
-def ready() -> bool:
-    """A no-op task: submitted once per worker at start-up, it makes the pool start them all."""
-    return True
