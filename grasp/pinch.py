@@ -38,7 +38,7 @@ from __future__ import annotations
 
 import functools
 import math
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 
 import numpy as np
 
@@ -47,8 +47,8 @@ from grasp.table import SupportPlane
 from grasp_client.wire import WristRise
 from hands.barrett import BH8_282, FINGERS, BarrettParams, HandKinematics
 
-__all__ = ["PROFILE_STEP_DEG", "TABLE_PINCH", "TIP_CLEARANCE_M", "close_pinching", "close_rising",
-           "depth", "faces_table", "pinch_failure", "pinch_height", "profile", "rise"]
+__all__ = ["PROFILE_STEP_DEG", "TABLE_PINCH", "TIP_CLEARANCE_M", "close_pinching", "depth",
+           "faces_table", "pinch_failure", "pinch_height", "profile", "rise"]
 
 #: The grasp kind (``GraspResult.kind``, the wire's ``kind``).
 TABLE_PINCH = "table pinch"
@@ -101,52 +101,6 @@ def rise(dof_deg: float | np.ndarray, params: BarrettParams = BH8_282) -> float 
     return np.interp(dof_deg, *profile(params))
 
 
-def close_rising(
-    poses_at: Callable[[float, dict[str, tuple[str, float]], float], dict[str, np.ndarray]],
-    first_contact: Callable[..., tuple[float, list[str]]],
-    *,
-    dof_max: float,
-    j2_max: float,
-    step: float,
-    speed: float,
-    tol: float,
-) -> dict[str, tuple[str, float, float]]:
-    """The closing's lock-step phase: every finger still closing at the same DOF, the palm
-    rising with it, until each has touched something or reached its limit.
-
-    ``poses_at(dof, moving, floor)`` gives the world poses of the moving fingers' links at
-    commanded DOF ``dof`` (radians) with the palm risen to the larger of :func:`rise` of it and
-    ``floor`` (the stopped fingers' rise, metres); ``moving`` maps each closing finger to
-    ("coupled", 0) or ("breakaway", frozen J2). ``first_contact`` is
-    :meth:`grasp.closing.Search.first_contact`.
-
-    Returns per finger (how it stopped, DOF, J2):
-    "distal" / "breakaway-distal" (touched; the caller closes it on from there, the palm fixed),
-    "limit" / "breakaway-limit" (reached the DOF's maximum untouched).
-    """
-    moving: dict[str, tuple[str, float]] = {f: ("coupled", 0.0) for f in FINGERS}
-    stopped: dict[str, tuple[str, float, float]] = {}
-    dof, floor = 0.0, 0.0
-    while moving:
-        dof, hit = first_contact(lambda t, floor=floor: poses_at(t, moving, floor), dof, dof_max,
-                                 step=step, speed=speed, tol=tol)
-        for finger, (mode, j2) in list(moving.items()):
-            j2 = min(dof, j2_max) if mode == "coupled" else j2
-            breakaway = mode == "breakaway"
-            if not hit:
-                stopped[finger] = ("breakaway-limit" if breakaway else "limit", dof, j2)
-            elif f"{finger}_dist" in hit:
-                stopped[finger] = ("breakaway-distal" if breakaway else "distal", dof, j2)
-            elif f"{finger}_prox" in hit:  # breakaway: J2 stops, the DOF goes on
-                moving[finger] = ("breakaway", j2)
-                continue
-            else:
-                continue
-            del moving[finger]
-            floor = max(floor, float(rise(math.degrees(dof))))
-    return stopped
-
-
 def pinch_failure(results: Sequence) -> str | None:
     """Why none of the table pinches among ``results`` (autograsped, not necessarily scored) is
     a grasp, in words: the one whose fingers touched the object most, what its fingers did; None
@@ -173,7 +127,7 @@ def pinch_failure(results: Sequence) -> str | None:
 def close_pinching(
     search: Search, palm: np.ndarray, spread: float, step: float
 ) -> tuple[np.ndarray, list[tuple[float, float, float, str]], WristRise]:
-    """Close a table pinch (:mod:`grasp.pinch`) from ``palm``: the lock-step phase with the palm
+    """Close a table pinch from ``palm`` (steps 2 and 3 above): the lock-step phase with the palm
     rising, then each finger that touched closes on from where it stopped (the palm where the
     rise ended). Returns the palm where closing ended, (DOF, J2, J3, stop) per finger (radians)
     and the rise."""
@@ -198,8 +152,24 @@ def close_pinching(
     dofs, rises = profile(params)
     slope = float(np.max(np.abs(np.diff(rises)) / np.radians(np.diff(dofs))))  # m per rad
     speed = max(speed_bounds(search.scene, f)[0] for f in FINGERS) + slope
-    stopped = close_rising(poses_at, search.first_contact, dof_max=dof_max, j2_max=j2_max,
-                           step=step, speed=speed, tol=ANGLE_TOL_RAD)
+    # the lock-step phase: every finger still closing at the same DOF, the palm rising with it,
+    # until each touched something (a proximal touch breaks away: J2 stops, the DOF goes on) or
+    # reached its limit; a stopped finger keeps its share of the rise (floor)
+    moving: dict[str, tuple[str, float]] = {f: ("coupled", 0.0) for f in FINGERS}
+    stopped: dict[str, tuple[str, float, float]] = {}
+    dof, floor = 0.0, 0.0
+    while moving:
+        dof, hit = search.first_contact(lambda t, floor=floor: poses_at(t, moving, floor), dof,
+                                        dof_max, step=step, speed=speed, tol=ANGLE_TOL_RAD)
+        for f, (mode, j2) in list(moving.items()):
+            j2 = min(dof, j2_max) if mode == "coupled" else j2
+            prefix = "breakaway-" if mode == "breakaway" else ""
+            if not hit or f"{f}_dist" in hit:
+                stopped[f] = (prefix + ("distal" if hit else "limit"), dof, j2)
+                del moving[f]
+                floor = max(floor, float(rise(math.degrees(dof), params)))
+            elif f"{f}_prox" in hit:
+                moving[f] = ("breakaway", j2)
     end = max(float(rise(math.degrees(q), params)) for _, q, _ in stopped.values())
     lifted = shift(palm, -end)
     fingers = []
