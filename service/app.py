@@ -62,8 +62,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.mount("/static/inspector", StaticFiles(directory=inspector.STATIC), name="inspector")
     app.add_middleware(BodyLimit, max_bytes=settings.max_body_bytes)
     app.add_middleware(QueryOnce)
-    token = None if settings.token is None else settings.token.get_secret_value()
-    app.add_middleware(TokenGate, token=token)  # added last: runs first, before the body
+    app.add_middleware(TokenGate, tokens=settings.tokens())  # added last: runs first
     errors.install(app)
     app.openapi = partial(openapi.document, app)
     return app

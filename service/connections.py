@@ -12,8 +12,14 @@ option, so :class:`GuardedH11Protocol` subclasses its h11 protocol (picked with
 - a **head deadline**: the request line and headers arrive within ``header_timeout_s`` of the
   connection opening or of the previous answer, else 408 (when part of a head came) and close;
 - a **body deadline**: the body arrives within ``body_timeout_s`` of its head, else close;
-- a **cap per client address**: a connection beyond ``max_per_client`` open ones from its address
-  gets 429 and is closed; other addresses are served;
+- a **cap per client**: a connection beyond ``max_per_client`` open ones of its client gets 429
+  and is closed; other clients are served. A client is its address; when the server can tell
+  clients apart behind one address (``GRASP_TOKEN`` lists several tokens, or
+  ``GRASP_TRUSTED_PROXIES`` names proxies), a connection is counted under the client its first
+  request's head names, its token or the address its proxy forwards, as nginx's ``limit_conn``
+  keyed by a header counts requests once their head is read. Until then it counts under its
+  address, where up to :data:`PENDING_PER_ADDRESS` × the cap may wait, so that 64 slow
+  connections from a NAT do not lock out the clients behind it;
 - a **lingering close** after an early answer, as nginx's ``lingering_close`` and Apache's
   lingering close do: the answer is followed by FIN, then the rest of the body is read and
   discarded (at most ``max_drain_bytes``, within the body deadline) before the socket closes.
@@ -35,6 +41,7 @@ a grasp plan may take long) or ``linger`` (answered; discarding input until the 
 from __future__ import annotations
 
 import asyncio
+import ipaddress
 import json
 import math
 import time
@@ -49,6 +56,7 @@ from uvicorn.config import Config
 from uvicorn.protocols.http.h11_impl import STATUS_PHRASES, H11Protocol
 from uvicorn.server import ServerState
 
+from service.deps import token_index
 from service.settings import Settings
 
 #: Seconds a refused connection stays open after its 429, discarding what the client sends, so
@@ -57,6 +65,10 @@ REFUSED_LINGER_S = 1.0
 
 #: Refused connections are logged once per client address and interval (seconds), with counts.
 REFUSED_LOG_INTERVAL_S = 10.0
+
+#: A server that keys clients by token or forwarded address lets this many times the cap of
+#: connections wait for their first head from one address (bounding a flood of idle ones).
+PENDING_PER_ADDRESS = 4
 
 Phase = Literal["head", "body", "app", "linger"]
 _ANSWERED = (h11.DONE, h11.MUST_CLOSE, h11.CLOSED)  # h11 states of a server whose answer is out
@@ -71,6 +83,8 @@ class Limits:
     max_per_client: int
     max_drain_bytes: int  # read and discarded after an early answer, at most
     max_head_bytes: int  # the request line and headers together, at most
+    tokens: tuple[str, ...] = ()  # GRASP_TOKEN's: with two or more, each is a client
+    proxies: frozenset[str] = frozenset()  # GRASP_TRUSTED_PROXIES
 
     @classmethod
     def of(cls, settings: Settings) -> Limits:
@@ -81,7 +95,36 @@ class Limits:
             max_per_client=settings.max_connections_per_client,
             max_drain_bytes=2 * settings.max_body_bytes,
             max_head_bytes=settings.max_head_bytes,
+            tokens=settings.tokens(),
+            proxies=settings.proxies(),
         )
+
+    @property
+    def keyed(self) -> bool:
+        """Whether a request's head may name a client other than its connection's address."""
+        return len(self.tokens) > 1 or bool(self.proxies)
+
+    def client(self, address: str, head: bytes) -> str:
+        """The client a request ``head`` (line and headers) from ``address`` names: ``token
+        #i`` when it carries the i-th of several tokens, else the address a trusted proxy
+        forwards (X-Forwarded-For's last one that is not a proxy), else ``address``."""
+        headers: dict[bytes, bytes] = {}
+        for line in head.split(b"\r\n")[1:]:
+            name, _, value = line.partition(b":")
+            headers[name.strip().lower()] = value.strip()  # the last of a repeated header
+        if len(self.tokens) > 1:
+            i = token_index(headers.get(b"authorization"), self.tokens)
+            if i is not None:
+                return f"token #{i + 1}"
+        if address in self.proxies and b"x-forwarded-for" in headers:
+            for hop in reversed(headers[b"x-forwarded-for"].decode("latin-1").split(",")):
+                try:
+                    hop = str(ipaddress.ip_address(hop.strip()))
+                except ValueError:
+                    break  # not an address: believe nothing further left
+                if hop not in self.proxies:
+                    return hop
+        return address
 
 
 #: The uvicorn minor releases this module's use of H11Protocol internals was tested with.
@@ -133,8 +176,10 @@ def serve(app: Callable, settings: Settings) -> None:
     # partial carries the limits and the count of connections per address that all share.
     protocol = partial(GuardedH11Protocol, limits=Limits.of(settings), per_client=Counter(),
                        refusals=RefusalLog())
+    proxies = settings.proxies()  # X-Forwarded-For is believed from these alone (off: none)
     uvicorn.run(app, host=settings.host, port=settings.port, log_level="info", http=protocol,
-                h11_max_incomplete_event_size=settings.max_head_bytes)
+                h11_max_incomplete_event_size=settings.max_head_bytes,
+                proxy_headers=bool(proxies), forwarded_allow_ips=",".join(sorted(proxies)) or None)
 
 
 class GuardedH11Protocol(H11Protocol):
@@ -156,6 +201,8 @@ class GuardedH11Protocol(H11Protocol):
         self.per_client = per_client  # open connections by client host, shared by all
         self.refusals = refusals or RefusalLog()  # shared by all, in serve()
         self.address: str | None = None
+        self.key: str | None = None  # the client it counts under: its address, then (keyed)
+        self.named = False  # whether a request head has named its client yet
         self.socket: asyncio.Transport = None  # type: ignore[assignment]  # uvicorn's wraps it
         self.phase: Phase | None = None
         self.deadline: asyncio.TimerHandle | None = None
@@ -169,18 +216,16 @@ class GuardedH11Protocol(H11Protocol):
         super().connection_made(_GentleClose(transport, self))  # type: ignore[arg-type]
         if self.client is not None:
             self.address = self.client[0]
-            self.per_client[self.address] += 1
-            if self.per_client[self.address] > self.limits.max_per_client:
+            self._count_under(self.address)
+            waiting = PENDING_PER_ADDRESS if self.limits.keyed else 1
+            if self.per_client[self.address] > waiting * self.limits.max_per_client:
                 self._refuse()
                 return
         self._watch()
 
     def connection_lost(self, exc: Exception | None) -> None:
         self._disarm()
-        if self.address is not None:
-            self.per_client[self.address] -= 1
-            if self.per_client[self.address] <= 0:
-                del self.per_client[self.address]
+        self._count_under(None)
         super().connection_lost(exc)
 
     def data_received(self, data: bytes) -> None:
@@ -190,6 +235,8 @@ class GuardedH11Protocol(H11Protocol):
         if self._answered_early() and self._over_drain(len(data)):
             return  # else uvicorn discards the rest of the body and reads the next request
         if self.phase == "head" and self._head_over_limit(data):
+            return
+        if self.phase == "head" and not self.named and self.limits.keyed and self._named(data):
             return
         super().data_received(data)
         self._watch()
@@ -249,6 +296,31 @@ class GuardedH11Protocol(H11Protocol):
         self._linger(until=self.loop.time() + self.limits.header_timeout_s, framed=False)
         return True
 
+    def _named(self, data: bytes) -> bool:
+        """Once the first request's head is complete, count the connection under the client it
+        names (:meth:`Limits.client`); True when that client is over the cap (429 sent)."""
+        received, _ = self.conn.trailing_data
+        head = received + data
+        end = head.find(b"\r\n\r\n")
+        if end < 0 or self.address is None:
+            return False
+        self.named = True
+        self._count_under(self.limits.client(self.address, head[:end]))
+        if self.per_client[self.key] > self.limits.max_per_client:
+            self._refuse()
+            return True
+        return False
+
+    def _count_under(self, key: str | None) -> None:
+        """Move this connection's count from its current client to ``key`` (None: gone)."""
+        if self.key is not None:
+            self.per_client[self.key] -= 1
+            if self.per_client[self.key] <= 0:
+                del self.per_client[self.key]
+        self.key = key
+        if key is not None:
+            self.per_client[key] += 1
+
     def _head_refusal(self, head: bytes) -> tuple[int, str]:
         """414 when the request line alone is over the limit, else 431, with what to do."""
         limit = self.limits.max_head_bytes
@@ -298,12 +370,14 @@ class GuardedH11Protocol(H11Protocol):
         self.socket.close()  # the app's receive() sees http.disconnect
 
     def _refuse(self) -> None:
-        n = self.limits.max_per_client
-        self.refusals.refused(self.address, self.logger.warning,
-                              "%s - over %d connections from this address: 429", self.address, n)
+        n, who = self.limits.max_per_client, self.key
+        if who == self.address and self.limits.keyed and not self.named:
+            n *= PENDING_PER_ADDRESS  # connections from one address still sending their head
+        self.refusals.refused(who, self.logger.warning,
+                              "%s - over %d connections from this client: 429", who, n)
         self._answer(
             429,
-            f"more than {n} open connections from {self.address} "
+            f"more than {n} open connections from {who} "
             "(GRASP_MAX_CONNECTIONS_PER_CLIENT): close some or reuse them",
             retry_after="1",
         )

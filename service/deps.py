@@ -12,7 +12,7 @@ from __future__ import annotations
 import hmac
 import math
 import time
-from collections.abc import AsyncIterator, Callable
+from collections.abc import AsyncIterator, Callable, Sequence
 from contextlib import asynccontextmanager
 from dataclasses import dataclass
 from functools import partial
@@ -102,12 +102,27 @@ ServicesDep = Annotated[Services, Depends(get_services)]
 _bearer = HTTPBearer(auto_error=False, description="needed when GRASP_TOKEN is set")
 
 
-def token_problem(authorization: str | None, token: str) -> str | None:
-    """Why an ``Authorization`` header value does not carry ``token`` (None when it does)."""
+def token_index(authorization: str | bytes | None, tokens: Sequence[str]) -> int | None:
+    """Which of ``tokens`` an ``Authorization`` header value carries as its bearer token."""
+    if isinstance(authorization, bytes):
+        authorization = authorization.decode("latin-1")
+    scheme, _, value = (authorization or "").partition(" ")
+    if scheme.lower() != "bearer" or not value.strip():
+        return None
+    given = value.strip().encode()
+    found = None
+    for i, token in enumerate(tokens):  # every one compared: the time says nothing of which
+        if hmac.compare_digest(given, token.encode()) and found is None:
+            found = i
+    return found
+
+
+def token_problem(authorization: str | None, tokens: Sequence[str]) -> str | None:
+    """Why an ``Authorization`` header value carries none of ``tokens`` (None when it does)."""
     scheme, _, value = (authorization or "").partition(" ")
     if scheme.lower() != "bearer" or not value:
         return "missing bearer token: send the header 'Authorization: Bearer <token>'"
-    if not hmac.compare_digest(value.strip().encode(), token.encode()):
+    if token_index(authorization, tokens) is None:
         return "wrong bearer token: send the token the server was started with (GRASP_TOKEN)"
     return None
 
@@ -120,11 +135,11 @@ def require_token(
 
     :class:`service.middleware.TokenGate` has already checked this before the body was read; this
     dependency declares the scheme in the OpenAPI document and guards in-process callers."""
-    token = services.settings.token
-    if token is None:
+    tokens = services.settings.tokens()
+    if not tokens:
         return
     header = None if credentials is None else f"{credentials.scheme} {credentials.credentials}"
-    problem = token_problem(header, token.get_secret_value())
+    problem = token_problem(header, tokens)
     if problem is not None:
         raise HTTPException(
             status.HTTP_401_UNAUTHORIZED, problem, headers={"WWW-Authenticate": "Bearer"}

@@ -9,7 +9,12 @@ megapixels). Two byte budgets bound them across concurrent requests:
   Content-Length (the limit ``GRASP_MAX_BODY_BYTES`` when it has none), for the body and the
   copy sent to a decoding process;
 - **decoding** (``GRASP_DECODE_MEMORY_BYTES``): reserved once the body is in, by the pixels its
-  depth image declares (or the points its text can hold), before anything is decoded.
+  depth image declares or the JSON arrays and numbers its text holds (:func:`text_cost`),
+  before anything is decoded.
+
+A body with more JSON arrays than a view of ``GRASP_MAX_POINTS`` points can hold is refused
+before it is parsed (:func:`too_many_arrays`): parsed, 32 MB of ``[0,0,1]`` (4.2 million points)
+held 1.4 GB.
 
 A request waits for room at most ``GRASP_MEMORY_WAIT_S``, then gets 503 with Retry-After; a
 request bigger than a whole budget runs alone. The reservations last until the answer is out,
@@ -37,9 +42,21 @@ from fastapi import HTTPException, status
 #: float32 and float64, the mask, the cleaning's buffers): measured with tracemalloc on 2048²
 #: images, 24 B for float32 metres, 9 B for a 16-bit PNG.
 DECODE_BYTES_PER_PIXEL = 24
-#: Peak bytes per byte of a body's text when it is JSON numbers (points): Python floats and lists
-#: (measured: 5.9 on 10⁴ and 5 × 10⁵ points).
-TEXT_EXPANSION = 6
+#: Peak bytes a JSON array of the body holds while it is parsed and validated (the list JSON
+#: makes, the one validation makes, their numbers as Python floats, the points as float64), and
+#: per number beyond them. Measured with tracemalloc on 10⁵-point bodies of every shape
+#: (docs/performance.md, "Memory under hostile bodies"): 256 B an array for points, realistic
+#: or ``[0,0,1]`` (32 bytes per byte of text: the 6 assumed before held 1.4 GB for 32 MB), 79
+#: for ``[[]]``, 67 for ``[]``; 10 B a number outside any inner array. (The text and JSON's
+#: lists are let go once validated; before, 386 B an array.) 400, not 256: the budgets bound
+#: RSS, and freed small objects stay in pymalloc's arenas. tests/test_memory.py checks it.
+ARRAY_BYTES = 400
+NUMBER_BYTES = 16
+#: And per byte of text: the text as a str, its strings as objects, base64 decoded.
+TEXT_BYTES = 3
+#: JSON arrays a view holds besides its points' (the points' own list, camera_pose 5,
+#: grid_to_camera 5, support_plane 1), plus the 128 '[' a session id could be made of.
+OTHER_ARRAYS = 12 + 128
 #: Copies of a body the server holds: the body read, and the copy pickled to a decoding process.
 BODY_COPIES = 2
 
@@ -53,11 +70,30 @@ def body_cost(content_length: int) -> int:
     return BODY_COPIES * content_length
 
 
+def text_cost(raw: bytes) -> int:
+    """What parsing ``raw``'s JSON holds at most: :data:`ARRAY_BYTES` an array,
+    :data:`NUMBER_BYTES` a number (counted by their separators), :data:`TEXT_BYTES` a byte."""
+    return (ARRAY_BYTES * raw.count(b"[") + NUMBER_BYTES * (raw.count(b",") + 1)
+            + TEXT_BYTES * len(raw))
+
+
+def too_many_arrays(raw: bytes, max_points: int) -> str | None:
+    """Why ``raw`` cannot be a view of at most ``max_points`` points, told from its count of
+    '[' alone (None when it can be): each point is an array, and nothing else of a view has
+    more than :data:`OTHER_ARRAYS`."""
+    arrays = raw.count(b"[")
+    if arrays <= max_points + OTHER_ARRAYS:
+        return None
+    return (f"the body holds {arrays} JSON arrays ('['); a view holds at most {max_points} "
+            "points (GRASP_MAX_POINTS), one array each: send fewer points or a depth image")
+
+
 def decode_cost(raw: bytes, max_pixels: int) -> int:
     """An upper bound of what decoding ``raw`` holds at its peak: the pixels its depth image
     declares (the largest ``width`` and ``height`` in the text; ``max_pixels`` when it names a
-    depth image whose size cannot be read so, e.g. keys written with \\u escapes), or the text
-    as numbers, whichever is larger, plus the decoding process's copy of the body."""
+    depth image whose size cannot be read so, e.g. keys written with \\u escapes), or its
+    JSON arrays and numbers (:func:`text_cost`), whichever is larger, plus the decoding
+    process's copy of the body."""
     sizes = {b"width": 0, b"height": 0}
     for key, value in _DIMENSION.findall(raw):
         sizes[key] = max(sizes[key], int(value))
@@ -65,7 +101,7 @@ def decode_cost(raw: bytes, max_pixels: int) -> int:
     if (pixels == 0 and b'"depth"' in raw) or b"\\u" in raw:
         pixels = max_pixels
     pixels = min(pixels, max_pixels)  # a larger image is refused before it is decoded
-    return max(DECODE_BYTES_PER_PIXEL * pixels, TEXT_EXPANSION * len(raw)) + len(raw)
+    return max(DECODE_BYTES_PER_PIXEL * pixels, text_cost(raw)) + len(raw)
 
 
 class ByteBudget:

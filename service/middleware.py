@@ -7,6 +7,7 @@ from __future__ import annotations
 import logging
 import re
 from collections import Counter
+from collections.abc import Sequence
 from urllib.parse import parse_qsl
 
 from fastapi import HTTPException, status
@@ -32,18 +33,18 @@ class TokenGate:
     (:mod:`service.connections`) discards the rest of the body, within bounds, then closes, so a
     client that reads only after sending (urllib, requests) sees the answer and not a reset."""
 
-    def __init__(self, app: ASGIApp, *, token: str | None) -> None:
+    def __init__(self, app: ASGIApp, *, tokens: Sequence[str]) -> None:
         self.app = app
-        self.token = token
+        self.tokens = tuple(tokens)
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
-        if scope["type"] != "http" or self.token is None or PUBLIC_PATHS.match(scope["path"]):
+        if scope["type"] != "http" or not self.tokens or PUBLIC_PATHS.match(scope["path"]):
             await self.app(scope, receive, send)
             return
         header = next(
             (v.decode("latin-1") for k, v in scope["headers"] if k == b"authorization"), None
         )
-        problem = token_problem(header, self.token)
+        problem = token_problem(header, self.tokens)
         if problem is None:
             await self.app(scope, receive, send)
             return

@@ -33,7 +33,7 @@ from pydantic import ValidationError
 
 from service import workers
 from service.inputs import DecodedView, InputError, decode_view
-from service.memory import ByteBudget, body_cost, decode_cost
+from service.memory import ByteBudget, body_cost, decode_cost, too_many_arrays
 from service.schemas import ViewIn
 
 #: Bodies up to this size are parsed in a thread of the server process.
@@ -138,6 +138,7 @@ def parse_view(raw: bytes, content_type: str | None, **limits) -> tuple:
             return "error", 400, TOO_DEEP
         except ValueError:  # an integer of more than 4300 digits, the only other refusal
             return "error", 400, _long_number(text)
+        del text  # its objects are what the validation reads
     try:
         view = ViewIn.model_validate(body)
     except RecursionError:
@@ -146,6 +147,7 @@ def parse_view(raw: bytes, content_type: str | None, **limits) -> tuple:
         errors = [{"loc": ["body", *e["loc"]], "msg": e["msg"], "type": e["type"]}
                   for e in exc.errors(include_url=False, include_input=False)]  # fmt: skip
         return "error", 422, capped(errors)
+    del body  # the validated copy is what is decoded: JSON's own lists go before the arrays come
     try:
         decoded = decode_view(view, **limits)
     except InputError as exc:
@@ -201,12 +203,16 @@ class BodyParser:
     @asynccontextmanager
     async def view(self, request: Request) -> AsyncIterator[ParsedView]:
         """The request's body read, parsed and decoded, while its bytes are reserved: the body's
-        by its Content-Length before it is read, the decoding's by the pixels it declares before
-        it is decoded; both until the caller is done with the view (its answer is out)."""
+        by its Content-Length before it is read, the decoding's by the pixels or JSON arrays it
+        declares before it is decoded (a body with more arrays than a view's points is refused
+        unparsed); both until the caller is done with the view (its answer is out)."""
         length = request.headers.get("content-length", "")
         expected = int(length) if length.isdigit() else self.max_body_bytes
         async with self.bodies.hold(body_cost(min(expected, self.max_body_bytes))):
             raw = await request.body()
+            if (problem := too_many_arrays(raw, self.limits.get("max_points", 1 << 40))):
+                raise RequestValidationError(
+                    [{"loc": ["body", "points"], "msg": problem, "type": "too_long"}])
             cost = decode_cost(raw, self.limits.get("max_image_pixels", 1 << 40))
             async with self.decoding.hold(cost):
                 parsed = await self.parse(raw, request.headers.get("content-type"))

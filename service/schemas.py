@@ -18,7 +18,9 @@ from pydantic import BaseModel, ConfigDict, Field, model_validator
 from grasp_client.wire import Grasp, Pose, RigidPose, SupportPlane
 
 FiniteFloat = Annotated[float, Field(allow_inf_nan=False)]
-Vector3 = Annotated[list[FiniteFloat], Field(min_length=3, max_length=3)]
+# fail_fast: a list's validation stops at its first bad element, so that a million bad points
+# cost one error, not a million of them (pydantic builds every error before any is capped)
+Vector3 = Annotated[list[FiniteFloat], Field(min_length=3, max_length=3, fail_fast=True)]
 Row4 = Annotated[list[FiniteFloat], Field(min_length=4, max_length=4)]
 Matrix4 = Annotated[list[Row4], Field(min_length=4, max_length=4, description="4×4, row-major")]
 SessionId = Annotated[str, Field(min_length=1, max_length=128, description="from POST /views")]
@@ -67,7 +69,7 @@ class ViewIn(_Strict):
     """One view: exactly one of ``points``, ``depth`` (with ``intrinsics``) or ``grid``."""
 
     session_id: SessionId | None = Field(None, description="absent: a new session is created")
-    points: list[Vector3] | None = Field(
+    points: Annotated[list[Vector3], Field(fail_fast=True)] | None = Field(
         None, description="the object's observed points [[x, y, z], …], camera frame, metres"
     )
     depth: DepthIn | None = None

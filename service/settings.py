@@ -2,9 +2,10 @@
 
 from __future__ import annotations
 
+import ipaddress
 from pathlib import Path
 
-from pydantic import Field, SecretStr, model_validator
+from pydantic import Field, SecretStr, field_validator, model_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 from grasp.planner import AUTOGRASP_BUDGET
@@ -64,8 +65,8 @@ class Settings(BaseSettings):
     )
     decode_memory_bytes: int = Field(
         96 * 1024 * 1024, ge=1024 * 1024, description="bytes the decoding of views may hold at "
-        "once (a depth image reserves 24 bytes a pixel it declares before it is decoded); more "
-        "wait, then get 503"
+        "once (a depth image reserves 24 bytes a pixel it declares, JSON 400 bytes an array, "
+        "before it is decoded); more wait, then get 503"
     )
     memory_wait_s: float = Field(
         30.0, gt=0, description="how long a view waits for memory (body_memory_bytes, "
@@ -100,11 +101,18 @@ class Settings(BaseSettings):
     max_connections_per_client: int = Field(
         64,
         ge=1,
-        description="open connections from one client address at most; more get 429 and are "
-        "closed (behind a proxy every client has the proxy's address)",
+        description="open connections from one client at most; more get 429 and are closed. A "
+        "client is its address, or, once a request names it, its token (when GRASP_TOKEN lists "
+        "several) or the address a trusted proxy forwards (GRASP_TRUSTED_PROXIES)",
     )
     token: SecretStr | None = Field(
-        None, description="if set, every route but /healthz needs 'Authorization: Bearer <token>'"
+        None, description="if set, every route but /healthz needs 'Authorization: Bearer "
+        "<token>'; several tokens separated by commas (one per client) are each accepted, and "
+        "each gets its own connection cap"
+    )
+    trusted_proxies: str = Field(
+        "", description="comma-separated addresses of reverse proxies whose X-Forwarded-For "
+        "names the client (its last address not itself a proxy); empty: the header is ignored"
     )
     n_candidates: int = Field(64, ge=1, description="default grasp candidates per GET /grasp")
     max_candidates: int = Field(512, ge=1, description="largest n_candidates a client may ask")
@@ -162,6 +170,35 @@ class Settings(BaseSettings):
     planning_processes: bool = Field(
         True, description="plan in worker processes (false: in threads of the server process)"
     )
+
+    @field_validator("trusted_proxies")
+    @classmethod
+    def _addresses(cls, value: str) -> str:
+        for part in filter(None, (p.strip() for p in value.split(","))):
+            try:
+                ipaddress.ip_address(part)
+            except ValueError:
+                raise ValueError(f"GRASP_TRUSTED_PROXIES: {part!r} is not an IP address "
+                                 "(give addresses separated by commas)") from None
+        return value
+
+    @field_validator("token")
+    @classmethod
+    def _tokens(cls, value: SecretStr | None) -> SecretStr | None:
+        if value is not None and not all(t.strip() for t in value.get_secret_value().split(",")):
+            raise ValueError("GRASP_TOKEN: an empty token (tokens are separated by commas)")
+        return value
+
+    def tokens(self) -> tuple[str, ...]:
+        """The accepted bearer tokens (none: no token is needed)."""
+        if self.token is None:
+            return ()
+        return tuple(t.strip() for t in self.token.get_secret_value().split(","))
+
+    def proxies(self) -> frozenset[str]:
+        """The trusted proxies' addresses, normalised (``ipaddress``'s spelling)."""
+        return frozenset(str(ipaddress.ip_address(p.strip()))
+                         for p in self.trusted_proxies.split(",") if p.strip())
 
     @model_validator(mode="after")
     def _verify_within_its_maximum(self) -> Settings:

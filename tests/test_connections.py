@@ -245,5 +245,104 @@ def test_a_flood_of_refused_connections_writes_a_line_or_two(server):
             sock.close()
     time.sleep(0.2)
     lines = [line for line in server.log.read_text().splitlines()
-             if "connections from this address" in line]
+             if "connections from this client" in line]
     assert 1 <= len(lines) <= 3, lines  # one per 10 s at most (an earlier test refused one too)
+
+
+# ------------------------------------------------------------------ clients behind one address
+TOKENS = ("alpha-token", "beta-token")
+
+
+def test_a_client_is_named_by_its_token_or_the_address_a_trusted_proxy_forwards():
+    from service.connections import Limits
+
+    limits = Limits(1.0, 1.0, 4, 0, 16384, tokens=TOKENS, proxies=frozenset({"10.0.0.1"}))
+    head = b"GET / HTTP/1.1\r\nHost: x\r\n"
+    assert limits.keyed and not Limits(1.0, 1.0, 4, 0, 16384, tokens=TOKENS[:1]).keyed
+    assert limits.client("10.0.0.7", head + b"Authorization: Bearer beta-token") == "token #2"
+    assert limits.client("10.0.0.7", head + b"authorization: bearer  alpha-token ") == "token #1"
+    assert limits.client("10.0.0.7", head + b"Authorization: Bearer gamma") == "10.0.0.7"
+    # X-Forwarded-For only from a trusted proxy; the last address that is not one of them
+    forwarded = head + b"X-Forwarded-For: 203.0.113.9, 198.51.100.4"
+    assert limits.client("10.0.0.1", forwarded) == "198.51.100.4"
+    assert limits.client("10.0.0.7", forwarded) == "10.0.0.7"
+    assert limits.client("10.0.0.1", head + b"X-Forwarded-For: 198.51.100.4, 10.0.0.1") \
+        == "198.51.100.4"
+    assert limits.client("10.0.0.1", head + b"X-Forwarded-For: bogus") == "10.0.0.1"
+    assert limits.client("10.0.0.1", head + b"X-Forwarded-For: 2001:DB8::1") == "2001:db8::1"
+    assert limits.client("10.0.0.1", head) == "10.0.0.1"
+
+
+@pytest.fixture(scope="module")
+def nat_server(tmp_path_factory, tiny_model):
+    """Two tokens and 127.0.0.1 as a trusted proxy: clients behind one address told apart."""
+    tmp = tmp_path_factory.mktemp("nat")
+    s = Server(tmp, tiny_model, tmp / "store.sqlite", token=",".join(TOKENS),
+               trusted_proxies="127.0.0.1", header_timeout_s=20.0,
+               max_connections_per_client=PER_CLIENT, planning_processes="false")
+    yield s
+    s.stop()
+
+
+def _kept_open(port: int, source: str, headers: bytes) -> socket.socket:
+    """A connection that made one request (GET /healthz) and stays open, as keep-alive ones do."""
+    sock = socket.create_connection(("127.0.0.1", port), source_address=(source, 0))
+    sock.sendall(b"GET /healthz HTTP/1.1\r\nhost: x\r\n" + headers + b"\r\n")
+    assert sock.recv(4096).startswith(b"HTTP/1.1 200 ")
+    return sock
+
+
+def _one_request(port: int, source: str, headers: bytes) -> bytes:
+    with socket.create_connection(("127.0.0.1", port), source_address=(source, 0),
+                                  timeout=5) as sock:
+        sock.sendall(b"GET /healthz HTTP/1.1\r\nhost: x\r\n" + headers + b"\r\n")
+        return sock.recv(4096)
+
+
+def test_behind_one_address_each_token_has_its_own_cap(nat_server):
+    """Issue 60, item 8: a client behind a NAT is not locked out by another one's connections:
+    with several tokens each is a client. 4 connections of token 1 and 12 idle ones that never
+    sent a head, all from 127.0.0.2: token 2 is served; token 1's fifth gets 429, and so does a
+    tokenless one (its client is the address); 16 idle ones (4 × the cap) are the most an
+    address may hold before heads name their clients."""
+    port, src = nat_server.port, "127.0.0.2"
+    alpha = b"authorization: Bearer alpha-token\r\n"
+    held = [_kept_open(port, src, alpha) for _ in range(PER_CLIENT)]
+    held += [socket.create_connection(("127.0.0.1", port), source_address=(src, 0))
+             for _ in range(3 * PER_CLIENT)]
+    try:
+        time.sleep(0.2)
+        assert _one_request(port, src, b"authorization: Bearer beta-token\r\n").startswith(
+            b"HTTP/1.1 200 ")
+        refused = _one_request(port, src, alpha)
+        assert refused.startswith(b"HTTP/1.1 429 ")
+        assert "more than 4 open connections from token #1" in json.loads(
+            refused.partition(b"\r\n\r\n")[2])["detail"]
+        # without a token of its own, a client is its address, which the idle ones fill
+        assert _one_request(port, src, b"").startswith(b"HTTP/1.1 429 ")
+        held += [socket.create_connection(("127.0.0.1", port), source_address=(src, 0))
+                 for _ in range(PER_CLIENT)]  # 16 waiting for their head: 4 × the cap
+        time.sleep(0.2)
+        with socket.create_connection(("127.0.0.1", port), source_address=(src, 0),
+                                      timeout=5) as flood:  # refused before it sends a byte
+            assert flood.recv(4096).startswith(b"HTTP/1.1 429 ")
+    finally:
+        for sock in held:
+            sock.close()
+
+
+def test_behind_a_trusted_proxy_each_forwarded_address_has_its_own_cap(nat_server):
+    port, src = nat_server.port, "127.0.0.1"  # the trusted proxy
+    first = b"x-forwarded-for: 198.51.100.1\r\n"
+    held = [_kept_open(port, src, first) for _ in range(PER_CLIENT)]
+    try:
+        time.sleep(0.2)
+        refused = _one_request(port, src, first)
+        assert refused.startswith(b"HTTP/1.1 429 ") and b"198.51.100.1" in refused
+        assert _one_request(port, src, b"x-forwarded-for: 198.51.100.2\r\n").startswith(
+            b"HTTP/1.1 200 ")
+        # from an address that is not a trusted proxy the header is ignored
+        assert _one_request(port, "127.0.0.3", first).startswith(b"HTTP/1.1 200 ")
+    finally:
+        for sock in held:
+            sock.close()

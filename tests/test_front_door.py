@@ -205,15 +205,24 @@ def test_a_query_parameter_given_twice_is_refused(client):
 
 def test_a_422_lists_at_most_twenty_errors_and_counts_the_rest(client):
     """A body of 50,000 empty points got one error each (a 331 MB answer for 8.4 MB); now the
-    first 20 and a count of the rest, a few kilobytes."""
+    points' validation stops at the first bad one, and any 422 lists the first 20 errors and a
+    count of the rest (50,000 unknown keys), a few kilobytes."""
     from service.parsing import MAX_ERRORS
 
-    r = client.post("/views", json={"points": [[]] * 50_000})
+    r = client.post("/views", json={"points": [[0.0, 0.0, 0.5]] * 3 + [[]] * 1_900})
+    assert r.status_code == 422  # (GRASP_MAX_POINTS is 2,000 here)
+    [error] = r.json()["detail"]
+    assert error["loc"] == ["body", "points", 3] and error["type"] == "too_short"
+    r = client.post("/views", json={"points": [[]] * 50_000})  # refused before it is parsed
+    [error] = r.json()["detail"]
+    assert r.status_code == 422 and error["loc"] == ["body", "points"]
+    assert "holds 50001 JSON arrays" in error["msg"] and "at most 2000 points" in error["msg"]
+    r = client.post("/views", json={f"k{i}": 0 for i in range(50_000)} | points_view())
     assert r.status_code == 422
     detail = r.json()["detail"]
     assert len(detail) == MAX_ERRORS + 1 and len(r.content) < 64 * 1024
     assert detail[-1]["type"] == "too_many_errors" and "more errors" in detail[-1]["msg"]
-    assert all(e["loc"][:2] == ["body", "points"] for e in detail[:-1])
+    assert all(e["type"] == "extra_forbidden" for e in detail[:-1])
 
 
 def test_a_killed_server_leaves_no_process_and_its_pools_start_with_it(tmp_path, tiny_model):

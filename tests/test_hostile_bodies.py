@@ -26,12 +26,14 @@ def test_deep_nesting_is_a_400_that_says_so_and_the_connection_lives_on(server):
     with httpx.Client(base_url=server.url, timeout=60) as client:
         for body in (b"[" * 100_000,  # parsed in a thread
                      b'{"points":' + b"[" * 2000 + b"]" * 2000 + b"}",
-                     b"[" * 600_000):  # over 512 kB: parsed in a worker process
+                     b'{"a":' * 120_000):  # over 512 kB: parsed in a worker process
             r = _post(client, body)
             assert r.status_code == 400, (len(body), r.text)
             assert "nested too deeply" in r.json()["detail"]
             ok = client.post("/views", json=points_view())  # the same connection still works
             assert ok.status_code == 200
+        r = _post(client, b"[" * 600_000)  # more arrays than points allowed: never parsed
+        assert r.status_code == 422 and "600000 JSON arrays" in r.json()["detail"][0]["msg"]
 
 
 def test_numbers_and_encodings_get_messages_that_name_the_problem(server):
