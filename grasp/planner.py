@@ -45,6 +45,7 @@ from grasp.candidates import (
     table_candidates,
 )
 from grasp.collision import CollisionScene, check_mesh
+from grasp.obstacles import Obstacles, hit_reason, sweep_hit
 from grasp.pinch import TABLE_PINCH, pinch_failure
 from grasp.screen import Screen, fingertip_span
 from grasp.table import SupportPlane, crosses
@@ -137,6 +138,7 @@ def plan(
     budget: int | None = AUTOGRASP_BUDGET,
     verify: int = 0,
     verify_settings: VerifySettings = DEFAULT_VERIFY,
+    obstacles: Obstacles | None = None,
     timings: dict[str, float] | None = None,
 ) -> list[GraspResult]:
     """Plan BarrettHand grasps on ``mesh``: the best ``top_k`` distinct grasps of
@@ -177,6 +179,11 @@ def plan(
         (:mod:`grasp.verify`). 0: no verification (the plan is exactly the unverified one).
     verify_settings : VerifySettings
         The trials' number and ranges (:class:`grasp.verify.VerifySettings`).
+    obstacles : Obstacles or None
+        What the hand must not touch besides the object and the table (the neighbours,
+        :mod:`grasp.obstacles`), in the mesh's frame: a candidate whose open hand meets one at
+        the pre-grasp is not tried, and a grasp whose approach or closing would is refused with
+        the reason. None or empty: exactly the plan without.
     timings : dict or None
         Filled with each stage's seconds ("setup": the collision model and the candidates;
         "screen"; "autograsp"; "rank", with the quality measures; "verify") and the counts
@@ -215,6 +222,13 @@ def plan(
         candidates = candidate_poses(scene.mesh, **options)
     else:
         candidates = table_candidates(scene.mesh, support_plane, travel=travel, **options)
+    blocked = []
+    if obstacles is not None and len(obstacles):  # the open hand at the pre-grasp
+        blocked = [sweep_hit(obstacles, c.palm_pose, c.palm_pose, _open(c.spread_deg))
+                   for c in candidates]
+        kept = [i for i, hit in enumerate(blocked) if hit is None]
+        # (every one blocked: all are tried, and refused with the reason)
+        candidates = [candidates[i] for i in kept] if kept else candidates
     lap("setup")
     screened = budget is not None and budget < len(candidates)
     order = screen_order(scene, candidates, travel) if screened else list(range(len(candidates)))
@@ -226,8 +240,14 @@ def plan(
         limit = travel if c.travel is None else c.travel
         result = autograsp(scene, c.palm_pose, spread_deg=c.spread_deg, max_travel=limit,
                            quality=False, pinch=c.source == TABLE_PINCH)
-        if support_plane is None or not crosses(support_plane, result):
-            results.append(result)
+        if support_plane is not None and crosses(support_plane, result):
+            continue
+        if obstacles is not None and result.contacts:
+            hit = sweep_hit(obstacles, c.palm_pose, result.palm_pose, result.joints_deg,
+                            end_palm_pose=result.end_palm_pose)
+            if hit is not None:
+                result = _refused(result, hit_reason(hit, scene.mesh))
+        results.append(result)
     lap("autograsp")
     # every autograsped result is ranked; top_k only cuts the list
     tried = 0
@@ -242,9 +262,11 @@ def plan(
         best = rank(results, scene)
     else:
         best = _best_distinct(results, scene, top_k)
-    if support_plane is not None and best and not best[0].success:
-        why = [w for w in (table_limits(scene.mesh, support_plane), pinch_failure(results))
-               if w is not None and w not in best[0].reason]
+    if best and not best[0].success:
+        why = [w for w in (support_plane and table_limits(scene.mesh, support_plane),
+                           support_plane and pinch_failure(results),
+                           obstacle_failure(blocked, results))
+               if w and w not in best[0].reason]
         if why:
             best[0] = dataclasses.replace(best[0], reason="; ".join([best[0].reason, *why]))
     lap("rank")
@@ -252,6 +274,27 @@ def plan(
         timings.update(stages, screened=len(candidates) if screened else 0,
                        autograsped=len(order), verified=tried)
     return best
+
+
+def _open(spread_deg: float) -> np.ndarray:
+    """The open hand's 8 joints (degrees) at a spread."""
+    return np.array([spread_deg, 0.0, 0.0, spread_deg, 0.0, 0.0, 0.0, 0.0])
+
+
+def _refused(result: GraspResult, reason: str) -> GraspResult:
+    """A grasp the obstacles rule out: no grasp, whatever its contacts (it is not scored)."""
+    return dataclasses.replace(result, success=False, reason=reason, epsilon=-1.0, volume=0.0,
+                               force_epsilon=-1.0)
+
+
+def obstacle_failure(blocked: Sequence, results: Sequence[GraspResult]) -> str | None:
+    """What the obstacles ruled out, when they did (None: nothing)."""
+    at_start = sum(hit is not None for hit in blocked)
+    refused = sum("would hit an obstacle" in r.reason for r in results)
+    if not at_start and not refused:
+        return None
+    return (f"obstacles: {at_start} of {len(blocked)} candidates blocked at the pre-grasp, "
+            f"{refused} grasps refused")
 
 
 def screen_order(scene: CollisionScene, candidates: Sequence[Candidate], travel: float):

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from pathlib import Path
 
 import numpy as np
@@ -77,6 +77,7 @@ def lift_test(
     friction: float = MU_RUBBER,
     density: float = DENSITY_KG_M3,
     support_plane: SupportPlane | None = None,
+    neighbours: Sequence[trimesh.Trimesh] = (),
     approach: Approach = "planned",
     settings: LiftSettings = DEFAULT_SETTINGS,
     params: BarrettParams = BH8_282,
@@ -107,6 +108,11 @@ def lift_test(
         (which must lie within ``settings.plane_tolerance`` of the plane: a completion cut at
         the plane rests on it, a mesh far above or through it is refused). None floats the
         object on a weak support until the hand has closed (world z up).
+    neighbours : sequence of trimesh.Trimesh
+        Other objects standing on the table (the mesh's frame), dynamic bodies of the same
+        density; the hand touching one stops a guarded approach. The result says how far they
+        moved and tilted at most over the whole test (``neighbour_moved``,
+        ``neighbour_tilt_deg``).
     approach : "planned" or "guarded"
         From the pre-grasp pose (``settings.pregrasp_backoff`` behind the palm pose, hand open),
         "planned" moves the palm to ``grasp.palm_pose`` exactly (open loop); "guarded" is how a
@@ -142,6 +148,7 @@ def lift_test(
         upright = to_upright(support_plane)
         if not np.array_equal(upright, np.eye(4)):  # the plane z = 0 keeps the mesh's bytes
             mesh = mesh.copy().apply_transform(upright)
+            neighbours = [m.copy().apply_transform(upright) for m in neighbours]
             palm = upright @ palm
         gap = float(mesh.bounds[0, 2])
         if abs(gap) > s.plane_tolerance:
@@ -162,6 +169,7 @@ def lift_test(
         friction=friction,
         density=density,
         table_top=float(mesh.bounds[0, 2]) if table else None,
+        neighbours=neighbours,
         settings=s,
         params=params,
         cache_dir=cache_dir,
@@ -171,6 +179,7 @@ def lift_test(
             world.hold_object(s.support_factor * world.mass * GRAVITY)
         world.place_hand(palm, open_joints, offset=backoff)
         fingers = world.fingers()
+        neighbours_at = world.neighbour_poses()
         # approach from the pre-grasp pose, hand open
         guarded = approach == "guarded"
         if not guarded or grasp.approach_stop != "contact":
@@ -233,6 +242,7 @@ def lift_test(
             else:
                 continue
             break
+        shifted, tilted = _disturbance(neighbours_at, world.neighbour_poses())
 
     moved = position - ref_position
     relative = ref_rotation.T @ rotation
@@ -259,4 +269,18 @@ def lift_test(
         contacts=contacts,
         travel=travel,
         rise=rose,
+        neighbour_moved=shifted,
+        neighbour_tilt_deg=tilted,
     )
+
+
+def _disturbance(before, after) -> tuple[float, float]:
+    """The largest distance (m) a neighbour's centre of mass moved, and the largest tilt
+    (degrees between a neighbour's up direction before and after: turning about the vertical
+    is no tilt)."""
+    shifted, tilted = 0.0, 0.0
+    for (p0, r0), (p1, r1) in zip(before, after, strict=True):
+        shifted = max(shifted, float(np.linalg.norm(p1 - p0)))
+        up = (r1 @ r0.T)[:, 2]  # where the world's up went
+        tilted = max(tilted, math.degrees(math.acos(float(np.clip(up[2], -1.0, 1.0)))))
+    return shifted, tilted

@@ -134,6 +134,9 @@ class LiftResult:
     rise : float
         How far (m) the palm rose while the fingers closed: a table pinch's (``grasp.wrist_rise``,
         followed by the fingers' DOFs), 0 for other grasps.
+    neighbour_moved, neighbour_tilt_deg : float
+        With neighbours on the table: how far (m) the one that moved most moved, and how far
+        (degrees) the one that tilted most tilted, from the pre-grasp to the end; 0 without.
     """
 
     success: bool
@@ -151,6 +154,8 @@ class LiftResult:
     contacts: int
     travel: float
     rise: float = 0.0
+    neighbour_moved: float = 0.0
+    neighbour_tilt_deg: float = 0.0
 
     def as_dict(self) -> dict:
         """JSON-ready dictionary (lists instead of arrays)."""

@@ -67,6 +67,8 @@ class DynamicWorld:
     table_top : float or None
         Put a static table (1 m square) whose top is the plane z = ``table_top``, centred under
         the object; None: no table.
+    neighbours : sequence of trimesh.Trimesh
+        Other objects on the table (world frame, at rest), dynamic bodies of the same density.
     settings : LiftSettings
     params : BarrettParams
     cache_dir : path or None
@@ -84,6 +86,7 @@ class DynamicWorld:
         friction: float = MU_RUBBER,
         density: float = DENSITY_KG_M3,
         table_top: float | None = None,
+        neighbours: Sequence[trimesh.Trimesh] = (),
         settings: LiftSettings = DEFAULT_SETTINGS,
         params: BarrettParams = BH8_282,
         cache_dir: str | Path | None = None,
@@ -95,15 +98,6 @@ class DynamicWorld:
             raise ValueError(f"friction must be a finite coefficient >= 0, got {friction}")
         self.settings = settings
         self.params = params
-        obj_path, pieces = convex_decomposition(mesh, cache_dir=cache_dir)
-        self.mass, com, inertia = mass_properties(mesh, pieces, density)
-        principal, axes = np.linalg.eigh(inertia)
-        if np.linalg.det(axes) < 0:
-            axes[:, 2] *= -1.0
-        # the object's body frame: centre of mass and principal axes, placed in the mesh frame
-        body = np.eye(4)
-        body[:3, :3], body[:3, 3] = axes, com
-        to_body = _invert(body)
         self._home: tuple[list[float], list[float]] | None = None
         self._constraint: int | None = None
         self._support: int | None = None
@@ -118,34 +112,10 @@ class DynamicWorld:
                 deterministicOverlappingPairs=1,
             )
             self.gravity(False)
-            # pybullet pads every convex hull by MESH_MARGIN_M: shrink the pieces by as much so
-            # that the padded shape is the true one
-            body_pieces = [
-                shrink(piece, MESH_MARGIN_M) @ to_body[:3, :3].T + to_body[:3, 3]
-                for piece in pieces
-            ]
-            with tempfile.TemporaryDirectory() as tmp:
-                shape_path = Path(tmp) / "object.obj"
-                write_pieces(shape_path, body_pieces)
-                shape = c.createCollisionShape(pybullet.GEOM_MESH, fileName=str(shape_path))
-            position, orientation = pose_to_pybullet(body)
-            self.object_id = c.createMultiBody(
-                baseMass=self.mass,
-                baseCollisionShapeIndex=shape,
-                basePosition=position,
-                baseOrientation=orientation,
-            )
-            c.changeDynamics(
-                self.object_id,
-                -1,
-                localInertiaDiagonal=np.maximum(principal, 1e-12).tolist(),
-                lateralFriction=1.0,
-                frictionAnchor=1,
-                spinningFriction=0.0,
-                rollingFriction=0.0,
-                linearDamping=0.0,
-                angularDamping=0.0,
-            )
+            self.object_id, self.mass = self._add_body(mesh, density, cache_dir)
+            # other objects on the table, dynamic as the object (same density)
+            self.neighbour_ids = [self._add_body(check_mesh(m), density, cache_dir)[0]
+                                  for m in neighbours]
             self.table_id: int | None = None
             if table_top is not None:
                 half = [0.5, 0.5, 0.025]
@@ -188,6 +158,58 @@ class DynamicWorld:
         except Exception:
             c.disconnect()
             raise
+
+    def _add_body(self, mesh: trimesh.Trimesh, density: float,
+                  cache_dir: str | Path | None) -> tuple[int, float]:
+        """A dynamic body of ``mesh`` (its convex decomposition) where the mesh is, at rest; its
+        id and mass."""
+        _, pieces = convex_decomposition(mesh, cache_dir=cache_dir)
+        mass, com, inertia = mass_properties(mesh, pieces, density)
+        principal, axes = np.linalg.eigh(inertia)
+        if np.linalg.det(axes) < 0:
+            axes[:, 2] *= -1.0
+        # the body frame: centre of mass and principal axes, placed in the mesh frame
+        body = np.eye(4)
+        body[:3, :3], body[:3, 3] = axes, com
+        to_body = _invert(body)
+        c = self.client
+        # pybullet pads every convex hull by MESH_MARGIN_M: shrink the pieces by as much so
+        # that the padded shape is the true one
+        body_pieces = [
+            shrink(piece, MESH_MARGIN_M) @ to_body[:3, :3].T + to_body[:3, 3] for piece in pieces
+        ]
+        with tempfile.TemporaryDirectory() as tmp:
+            shape_path = Path(tmp) / "object.obj"
+            write_pieces(shape_path, body_pieces)
+            shape = c.createCollisionShape(pybullet.GEOM_MESH, fileName=str(shape_path))
+        position, orientation = pose_to_pybullet(body)
+        body_id = c.createMultiBody(
+            baseMass=mass,
+            baseCollisionShapeIndex=shape,
+            basePosition=position,
+            baseOrientation=orientation,
+        )
+        c.changeDynamics(
+            body_id,
+            -1,
+            localInertiaDiagonal=np.maximum(principal, 1e-12).tolist(),
+            lateralFriction=1.0,
+            frictionAnchor=1,
+            spinningFriction=0.0,
+            rollingFriction=0.0,
+            linearDamping=0.0,
+            angularDamping=0.0,
+        )
+        return body_id, mass
+
+    def neighbour_poses(self) -> list[tuple[np.ndarray, np.ndarray]]:
+        """Each neighbour's centre of mass (3,) and body axes (3, 3), world frame."""
+        out = []
+        for body in self.neighbour_ids:
+            position, orientation = self.client.getBasePositionAndOrientation(body)
+            rotation = np.array(self.client.getMatrixFromQuaternion(orientation)).reshape(3, 3)
+            out.append((np.array(position), rotation))
+        return out
 
     # -- lifetime --------------------------------------------------------------------------------
     def close(self) -> None:
@@ -239,13 +261,12 @@ class DynamicWorld:
         return len(self.client.getContactPoints(self.hand_id, self.object_id))
 
     def touches(self) -> bool:
-        """Whether the hand touches the object or the table (what a wrist force-torque sensor
-        feels during a guarded move)."""
+        """Whether the hand touches the object, the table or a neighbour (what a wrist
+        force-torque sensor feels during a guarded move)."""
         if self.n_contacts():
             return True
-        return self.table_id is not None and bool(
-            self.client.getContactPoints(self.hand_id, self.table_id)
-        )
+        others = [b for b in (self.table_id, *self.neighbour_ids) if b is not None]
+        return any(self.client.getContactPoints(self.hand_id, b) for b in others)
 
     def hold_object(self, force: float | None) -> None:
         """Hold the object where it is by a constraint of at most ``force`` (N); None frees it.

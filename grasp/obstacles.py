@@ -1,0 +1,222 @@
+"""Obstacles beside the object: the neighbours on a table, which the hand must not touch.
+
+A robot's table is rarely empty. The planner is given what it must keep clear of as a set of
+occupied voxels (:class:`Obstacles`, the centres of cubes of side ``pitch``), in the frame of
+the mesh it plans on: the voxels the service saw around the target (every non-table pixel that
+is not the target's, back-projected), or the surfaces of the neighbours' true meshes in the
+evaluation. Voxels, not meshes: a depth camera sees the neighbours' near sides only, and a voxel
+set of a stated pitch is bounded however many views add to it.
+
+The hand keeps clear of them while it moves as the planner plans it (:func:`sweep_hit`):
+
+1. the open hand's approach, a straight line from the pre-grasp to where the autograsp stopped
+   (exact for the links' bounding boxes: each box swept along a segment);
+2. the closing, from the open hand to the closed one (the palm rising with a table pinch),
+   every :data:`CLOSING_STEP_DEG` of joint motion: between two samples each box is swept along
+   its centre's motion and grown by what its turn adds, so that nothing between is missed.
+
+Each voxel is a cube, so a box reaches it when the box grown by half the voxel's diagonal holds
+its centre (conservative by at most that much). A grasp whose hand reaches an obstacle is
+refused by the planner with the reason (:func:`hit_reason`). The lift that follows is not
+checked: it moves the hand away from the table, away from neighbours standing on it.
+
+This module must not import torch (docs/design.md §2).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+import trimesh
+from scipy.spatial import cKDTree
+
+from hands.barrett import BH8_282, LINK_NAMES, BarrettParams, HandKinematics
+
+__all__ = ["CLOSING_STEP_DEG", "DEFAULT_PITCH_M", "Hit", "Obstacles", "hit_reason", "sweep_hit"]
+
+#: Side of an obstacle voxel (metres): fine beside a 2-10 cm gap, bounded in count.
+DEFAULT_PITCH_M = 0.005
+#: The closing is checked every this many degrees of joint motion (a finger link's box is grown
+#: by about 2 mm for its turn between two samples).
+CLOSING_STEP_DEG = 2.5
+
+
+class Obstacles:
+    """Occupied voxels to keep the hand clear of: (n, 3) centres, cubes of side ``pitch``.
+
+    Points are snapped to the voxel grid of ``pitch`` (origin at 0), so that views adding the
+    same surface add no voxel twice."""
+
+    def __init__(self, points: np.ndarray, pitch: float = DEFAULT_PITCH_M) -> None:
+        points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+        if not pitch > 0.0:
+            raise ValueError(f"pitch must be positive, got {pitch}")
+        if not np.isfinite(points).all():
+            raise ValueError("obstacle points must be finite")
+        self.pitch = float(pitch)
+        keys = np.unique(np.floor(points / pitch).astype(np.int64), axis=0)
+        self.centres = (keys + 0.5) * pitch
+        self._tree = cKDTree(self.centres) if len(self.centres) else None
+
+    @classmethod
+    def from_meshes(cls, meshes: Sequence[trimesh.Trimesh],
+                    pitch: float = DEFAULT_PITCH_M) -> Obstacles:
+        """The surfaces of ``meshes`` (the neighbours), voxelised at ``pitch``."""
+        points = [m.voxelized(pitch).points for m in meshes if len(m.faces)]
+        return cls(np.concatenate(points) if points else np.zeros((0, 3)), pitch)
+
+    def __len__(self) -> int:
+        return len(self.centres)
+
+    @property
+    def reach(self) -> float:
+        """How far from a voxel's centre its cube reaches (half its diagonal)."""
+        return 0.5 * math.sqrt(3.0) * self.pitch
+
+    def near(self, centre: np.ndarray, radius: float) -> np.ndarray:
+        """The voxel centres within ``radius`` (+ :attr:`reach`) of ``centre``."""
+        if self._tree is None:
+            return self.centres
+        return self.centres[self._tree.query_ball_point(centre, radius + self.reach)]
+
+    def transformed(self, matrix: np.ndarray) -> Obstacles:
+        """The same voxels' centres moved by the rigid ``matrix`` (4, 4), re-snapped."""
+        matrix = np.asarray(matrix, dtype=np.float64)
+        return Obstacles(self.centres @ matrix[:3, :3].T + matrix[:3, 3], self.pitch)
+
+
+@dataclass(frozen=True)
+class Hit:
+    """Where a planned motion reaches an obstacle: the hand's link, the motion's phase
+    ("approach" or "closing") and the obstacle voxel's centre."""
+
+    link: str
+    phase: str
+    point: np.ndarray
+
+
+def _box_sweep_hits(points: np.ndarray, pose: np.ndarray, half: np.ndarray,
+                    move: np.ndarray) -> np.ndarray:
+    """Which ``points`` the box (``pose``: box→world, ``half``: half extents) reaches while it
+    translates by ``move`` (world): slab intervals of the motion parameter s in [0, 1]."""
+    rot, centre = pose[:3, :3], pose[:3, 3]
+    q = (points - centre) @ rot  # the points in the box frame
+    u = rot.T @ move
+    lo, hi = np.zeros(len(points)), np.ones(len(points))
+    for axis in range(3):
+        if abs(u[axis]) < 1e-12:
+            inside = np.abs(q[:, axis]) <= half[axis]
+            lo = np.where(inside, lo, 2.0)
+            continue
+        a = (q[:, axis] - half[axis]) / u[axis]
+        b = (q[:, axis] + half[axis]) / u[axis]
+        lo, hi = np.maximum(lo, np.minimum(a, b)), np.minimum(hi, np.maximum(a, b))
+    return lo <= hi
+
+
+class _Hand:
+    """The hand's links as boxes (each primitive's bounding box) for obstacle tests."""
+
+    def __init__(self, params: BarrettParams) -> None:
+        self.kinematics = HandKinematics(params)
+        self.params = params
+        self.boxes = {link: [(prim.pose, prim.half_extents())
+                             for prim in self.kinematics.primitives_of(link)]
+                      for link in LINK_NAMES}
+
+    def world_boxes(self, palm: np.ndarray, joints_rad: np.ndarray):
+        """(link, box→world, half extents) of every primitive."""
+        for link, pose in self.kinematics.link_poses(joints_rad).items():
+            for local, half in self.boxes[link]:
+                yield link, palm @ pose @ local, half
+
+
+_HANDS: dict[BarrettParams, _Hand] = {}
+
+
+def _hand(params: BarrettParams) -> _Hand:
+    if params not in _HANDS:
+        _HANDS[params] = _Hand(params)
+    return _HANDS[params]
+
+
+def _first_hit(obstacles: Obstacles, boxes, move: np.ndarray, grow: float,
+               phase: str) -> Hit | None:
+    for link, pose, half in boxes:
+        half = half + obstacles.reach + grow
+        radius = float(np.linalg.norm(half)) + 0.5 * float(np.linalg.norm(move))
+        near = obstacles.near(pose[:3, 3] + 0.5 * move, radius)
+        if len(near) == 0:
+            continue
+        hits = _box_sweep_hits(near, pose, half, move)
+        if hits.any():
+            return Hit(link, phase, near[int(np.argmax(hits))])
+    return None
+
+
+def sweep_hit(
+    obstacles: Obstacles | None,
+    start_pose: np.ndarray,
+    palm_pose: np.ndarray,
+    joints_deg: Sequence[float],
+    *,
+    end_palm_pose: np.ndarray | None = None,
+    params: BarrettParams = BH8_282,
+) -> Hit | None:
+    """The first place where the hand, moving as planned, reaches an obstacle (None: clear).
+
+    ``start_pose``: the pre-grasp palm pose (the open hand, fingers at the grasp's spread);
+    ``palm_pose``: where the approach stopped and closing starts; ``joints_deg``: the closed
+    hand's 8 joints; ``end_palm_pose``: where the palm is when closing ends (a table pinch's
+    rise; default ``palm_pose``)."""
+    if obstacles is None or len(obstacles) == 0:
+        return None
+    hand = _hand(params)
+    closed = np.radians(np.asarray(joints_deg, dtype=np.float64))
+    opened = np.zeros(8)
+    opened[[0, 3]] = closed[[0, 3]]  # the spread is set before the approach
+    start, stop = np.asarray(start_pose, float), np.asarray(palm_pose, float)
+    end = stop if end_palm_pose is None else np.asarray(end_palm_pose, float)
+    hit = _first_hit(obstacles, hand.world_boxes(start, opened), stop[:3, 3] - start[:3, 3], 0.0,
+                     "approach")
+    if hit is not None:
+        return hit
+    travel = float(np.max(np.abs(np.degrees(closed - opened))))
+    steps = max(1, math.ceil(travel / CLOSING_STEP_DEG))
+    samples = []
+    for k in range(steps + 1):
+        s = k / steps
+        palm = stop.copy()
+        palm[:3, 3] = (1.0 - s) * stop[:3, 3] + s * end[:3, 3]
+        samples.append(list(hand.world_boxes(palm, (1.0 - s) * opened + s * closed)))
+    # between two samples each box is swept along its centre's motion and grown by what its
+    # turn adds: a link turns by at most its joints' change (the distal's orientation is
+    # J2 + J3), its corners by its half diagonal times that
+    turn = 2.0 * math.radians(travel) / steps
+    for j, (link, _, half) in enumerate(samples[0]):
+        centres = np.array([boxes[j][1][:3, 3] for boxes in samples])
+        middle = 0.5 * (centres.min(axis=0) + centres.max(axis=0))
+        grown = half + obstacles.reach + float(np.linalg.norm(half)) * turn
+        radius = float(np.linalg.norm(centres - middle, axis=1).max() + np.linalg.norm(grown))
+        near = obstacles.near(middle, radius)
+        if len(near) == 0:
+            continue
+        for k in range(steps):
+            pose, move = samples[k][j][1], centres[k + 1] - centres[k]
+            hits = _box_sweep_hits(near, pose, grown, move)
+            if hits.any():
+                return Hit(link, "closing", near[int(np.argmax(hits))])
+    return None
+
+
+def hit_reason(hit: Hit, target: trimesh.Trimesh) -> str:
+    """A refused grasp's reason: which part of the hand, when, and how far from the target the
+    obstacle is."""
+    _, distance, _ = trimesh.proximity.closest_point(target, hit.point[None])
+    distance = float(distance[0])
+    part = "the palm" if hit.link == "palm" else f"finger {hit.link[1]}"
+    when = "on the way in" if hit.phase == "approach" else "while closing"
+    return (f"{part} would hit an obstacle {100 * distance:.0f} cm from the target {when}")

@@ -1,0 +1,110 @@
+"""Neighbours as obstacles (grasp.obstacles, issue 61): voxels the hand keeps clear of while it
+approaches and closes, the planner refusing grasps that would touch them, and the lift test
+with the neighbours as dynamic bodies on the table."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import trimesh
+
+from grasp.obstacles import Obstacles, sweep_hit
+from grasp.physics import lift_test
+from grasp.planner import plan
+from grasp.table import SupportPlane
+
+TABLE = SupportPlane([0.0, 0.0, 1.0], 0.0)
+
+
+def standing_box(extents, at) -> trimesh.Trimesh:
+    box = trimesh.creation.box(extents)
+    box.apply_translation([at[0], at[1], extents[2] / 2])
+    return box
+
+
+@pytest.fixture(scope="module")
+def target():
+    return standing_box((0.06, 0.06, 0.12), (0.0, 0.0))
+
+
+@pytest.fixture(scope="module")
+def neighbour():
+    """A box like the target, 3 cm beside it: in the way of the fingers of its best grasp."""
+    return standing_box((0.06, 0.06, 0.12), (0.0, 0.09))
+
+
+def test_obstacle_points_snap_to_voxels_so_views_of_one_surface_add_nothing_twice():
+    rng = np.random.default_rng(0)
+    points = rng.uniform(0.0, 0.05, size=(2000, 3))
+    once = Obstacles(points, pitch=0.01)
+    twice = Obstacles(np.concatenate([points, points + 1e-4]), pitch=0.01)
+    assert len(once) <= 125 and len(twice) <= len(once) + 25  # a 5 cm cube of 1 cm voxels
+    assert np.allclose(np.sort(Obstacles(once.centres, 0.01).centres, axis=0),
+                       np.sort(once.centres, axis=0))
+    shifted = once.transformed(np.array([[1, 0, 0, 0.1], [0, 1, 0, 0], [0, 0, 1, 0],
+                                         [0, 0, 0, 1.0]]))
+    assert np.isclose(shifted.centres[:, 0].min(), once.centres[:, 0].min() + 0.1)
+    with pytest.raises(ValueError, match="pitch"):
+        Obstacles(points, pitch=0.0)
+    with pytest.raises(ValueError, match="finite"):
+        Obstacles(np.array([[0.0, np.nan, 0.0]]))
+
+
+def test_the_sweep_finds_obstacles_on_the_way_in_and_while_closing(target, neighbour):
+    top = plan(target, n_candidates=64, seed=0, top_k=1, support_plane=TABLE)[0]
+    start = top.palm_pose.copy()
+    start[:3, 3] -= 0.15 * top.palm_pose[:3, 2]  # 15 cm back along the approach
+    behind = standing_box((0.04, 0.04, 0.04), start[:3, 3][:2] - [0, 0])  # on the path in
+    behind.apply_translation([0, 0, start[2, 3] - 0.02])
+    hit = sweep_hit(Obstacles.from_meshes([behind]), start, top.palm_pose, top.joints_deg)
+    assert hit is not None and hit.phase == "approach"
+    # the neighbour is clear of the open hand at its pre-grasp but in its fingers' way
+    hit = sweep_hit(Obstacles.from_meshes([neighbour]), top.palm_pose, top.palm_pose,
+                    top.joints_deg)
+    assert hit is not None and hit.link != "palm"
+    far = standing_box((0.06, 0.06, 0.12), (0.6, 0.6))
+    assert sweep_hit(Obstacles.from_meshes([far]), start, top.palm_pose, top.joints_deg) is None
+    assert sweep_hit(None, start, top.palm_pose, top.joints_deg) is None
+
+
+def test_without_obstacles_the_plan_is_unchanged(target):
+    plain = plan(target, n_candidates=32, seed=1, top_k=3, support_plane=TABLE)
+    for none in (None, Obstacles(np.zeros((0, 3)))):
+        same = plan(target, n_candidates=32, seed=1, top_k=3, support_plane=TABLE, obstacles=none)
+        assert [g.reason for g in same] == [g.reason for g in plain]
+        assert all(np.array_equal(a.palm_pose, b.palm_pose) for a, b in zip(same, plain,
+                                                                             strict=True))
+
+
+def test_the_planner_picks_another_grasp_where_the_best_one_sweeps_through_a_neighbour(
+        target, neighbour):
+    """Issue 61's hand-built scene: the best grasp without obstacles pushes the neighbour 3 cm
+    away (it moves > 2 cm in the lift test); with the neighbour as an obstacle the planner
+    returns another grasp, which holds and leaves the neighbour where it stood."""
+    ignoring = plan(target, n_candidates=64, seed=0, top_k=1, support_plane=TABLE)[0]
+    obstacles = Obstacles.from_meshes([neighbour])
+    avoiding = plan(target, n_candidates=64, seed=0, top_k=3, support_plane=TABLE,
+                    obstacles=obstacles)
+    best = avoiding[0]
+    assert best.success and not np.allclose(best.palm_pose, ignoring.palm_pose)
+    assert sweep_hit(obstacles, best.palm_pose, best.palm_pose, best.joints_deg) is None
+    pushed = lift_test(target, ignoring, seed=0, support_plane=TABLE, approach="guarded",
+                       neighbours=[neighbour])
+    assert pushed.neighbour_moved > 0.02
+    clear = lift_test(target, best, seed=0, support_plane=TABLE, approach="guarded",
+                      neighbours=[neighbour])
+    assert clear.success and clear.neighbour_moved < 0.005 and clear.neighbour_tilt_deg < 2.0
+
+
+def test_a_target_boxed_in_gets_no_grasp_and_the_reason_names_the_obstacles(target):
+    walls = [standing_box((0.3, 0.02, 0.3), (0.0, 0.05)), standing_box((0.3, 0.02, 0.3),
+                                                                       (0.0, -0.05)),
+             standing_box((0.02, 0.3, 0.3), (0.05, 0.0)), standing_box((0.02, 0.3, 0.3),
+                                                                       (-0.05, 0.0))]
+    walls += [standing_box((0.3, 0.3, 0.02), (0.0, 0.0))]
+    walls[-1].apply_translation([0, 0, 0.14])  # a lid 2 cm above the target
+    best = plan(target, n_candidates=32, seed=0, top_k=1, support_plane=TABLE,
+                obstacles=Obstacles.from_meshes(walls))[0]
+    assert not best.success
+    assert "would hit an obstacle" in best.reason or "blocked at the pre-grasp" in best.reason
+    assert "obstacles:" in best.reason
