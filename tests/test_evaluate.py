@@ -291,7 +291,7 @@ def test_same_seed_same_numbers(tiny_run, tmp_path):
         grasp_count=0,
         named=0,
         sensor=0,
-        benchmark=0,  # one cell of the main table is what is compared
+        benchmark=0, clutter=0,  # one cell of the main table is what is compared
         views=3,
         seed=3,
         candidates=2,
@@ -344,7 +344,7 @@ def _settings(paths: dict, **changes) -> ev.Settings:
         named=0,
         sensor=0,
         overhead=0,
-        benchmark=0,  # the main table's rows are what these tests look at
+        benchmark=0, clutter=0,  # the main table's rows are what these tests look at
         views=3,
         seed=7,
         candidates=2,

@@ -10,6 +10,7 @@ from completion.scenes import CONDITIONS, SINGLE_OBJECT_CONDITIONS
 from grasp.evaluate.cells import mean_or_none
 from grasp.evaluate.config import (
     BENCHMARK_TABLE,
+    CLUTTER_TABLE,
     EVAL_SPLITS,
     FSCORE_METRICS,
     GRASP_SUCCESS,
@@ -143,7 +144,7 @@ def fscore_ceiling(ceiling: dict) -> dict:
 def per_object_records(results: list[SequenceResult], settings: Settings) -> list[dict]:
     records = []
     for r in results:
-        if r.job.table == BENCHMARK_TABLE:
+        if r.job.table in (BENCHMARK_TABLE, CLUTTER_TABLE):
             records.append({"table": r.job.table, "index": r.job.index,
                             "object_ids": r.object_ids, "benchmark": r.benchmark["rows"]})
             continue

@@ -15,6 +15,7 @@ STAGES: tuple[str, ...] = (
     "grasping",
     "physics",
     "benchmark",
+    "clutter",
 )
 
 
@@ -66,7 +67,8 @@ class SequenceResult:
     # below_plane -> the target's share below the support plane (scenes with one)
     ceiling: dict[str, list[float]] = field(default_factory=dict)
     elevation_deg: list[float] = field(default_factory=list)  # the camera's, per view
-    # the benchmark's object record (grasp.evaluate.benchmark.object_record): "rows": row -> outcome
+    # the benchmark's object record (grasp.evaluate.benchmark.object_record) or the clutter
+    # table's scene record: "rows": row -> outcome
     benchmark: dict = field(default_factory=dict)
 
 

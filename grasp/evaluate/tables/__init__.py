@@ -3,7 +3,7 @@ in results.json and how it writes its part of results.md (:class:`~grasp.evaluat
 Table`). Adding a table: a module with a Table and one line in :data:`TABLES` (whose order is the
 order of the jobs, and of results.md within a section of the main table's report)."""
 
-from grasp.evaluate.tables import benchmark, main, objects, overhead, sensor
+from grasp.evaluate.tables import benchmark, clutter, main, objects, overhead, sensor
 from grasp.evaluate.tables.base import Table
 
 TABLES: tuple[Table, ...] = (
@@ -11,6 +11,7 @@ TABLES: tuple[Table, ...] = (
     sensor.TABLE,  # each condition with and without the sensor model, paired
     overhead.TABLE,  # tabletop seen from above: the share of the completion below the table
     benchmark.TABLE,  # the grasp-success benchmark: objects on a table, lift-tested
+    clutter.TABLE,  # a target among neighbours: the neighbours as obstacles, and not
     objects.NAMED,  # the held-out named pybullet_data objects
     objects.FOLDER,  # every mesh of --objects DIR
 )

@@ -1,0 +1,103 @@
+"""The clutter table: a target among neighbours on a table, grasped with the neighbours seen as
+obstacles and without, lift-tested with the neighbours standing by (the scenes and the rows:
+:mod:`grasp.evaluate.clutter`)."""
+
+from __future__ import annotations
+
+from typing import Any
+
+from completion.bullet import quiet_fds
+from grasp.evaluate import clutter as c
+from grasp.evaluate.benchmark import _reason_kind, wilson
+from grasp.evaluate.cells import fmt
+from grasp.evaluate.config import CLUTTER_TABLE, GRASP_SUCCESS, Job, Settings
+from grasp.evaluate.records import SequenceResult, StageClock, Timings, key_seed
+from grasp.evaluate.tables.base import Table
+
+LABELS = {
+    "true_meshes": "True meshes (target and neighbours known)",
+    "mvp_4views_obstacles": "MVP, 4 views, the seen neighbours as obstacles",
+    "mvp_4views_ignoring": "MVP, 4 views, the neighbours ignored (before)",
+}
+
+
+class ClutterTable(Table):
+    name, section = CLUTTER_TABLE, "grasps"
+
+    def jobs(self, settings: Settings) -> list[Job]:
+        return [Job(CLUTTER_TABLE, "tabletop", "test", index) for index in range(settings.clutter)]
+
+    def run(self, evaluator: Any, job: Job) -> SequenceResult:
+        s = evaluator.settings
+        timings = Timings()
+        clock = StageClock(timings)
+        scene = c.clutter_scene(job.index, s.seed, evaluator.renderer)
+        rows = [r for r in c.CLUTTER_ROWS if r == "true_meshes" or "mvp" in evaluator.models]
+        with quiet_fds(1):
+            outcome = c.run_scene(scene, evaluator.models, rows,
+                                  candidates=s.benchmark_candidates,
+                                  seed=key_seed(s.seed, job.table, job.index))
+        clock.charge("clutter")
+        record = {"id": scene.target_id, "neighbours": scene.neighbour_ids,
+                  "gaps_m": [round(g, 4) for g in scene.gaps_m], "rows": outcome}
+        return SequenceResult(job, [scene.target_id, *scene.neighbour_ids], {},
+                              timings=timings, benchmark=record)
+
+    def summarise(self, results: list[SequenceResult], settings: Settings) -> dict:
+        """``clutter`` (row -> success, tested, the 95 % interval, the failures; None without
+        scenes) and ``clutter_scenes``, one record per scene."""
+        mine = [r.benchmark for r in results if r.job.table == CLUTTER_TABLE]
+        if not mine:
+            return {"clutter": None, "clutter_scenes": []}
+        block = {}
+        for row in c.CLUTTER_ROWS:
+            outcomes = [m["rows"][row] for m in mine if row in m["rows"]]
+            if not outcomes:
+                continue
+            won = sum(o["success"] for o in outcomes)
+            reasons: dict[str, int] = {}
+            for o in outcomes:
+                if not o["success"]:
+                    key = _reason_kind(o["reason"]).split(" (")[0]
+                    if key.startswith("held, but"):
+                        key = "held, but a neighbour was knocked"
+                    reasons[key] = reasons.get(key, 0) + 1
+            block[row] = {"success": won, "tested": len(outcomes),
+                          "held": sum(o["held"] for o in outcomes),
+                          "ci95": wilson(won, len(outcomes)),
+                          "reasons": dict(sorted(reasons.items(), key=lambda kv: -kv[1]))}
+        return {"clutter": block, "clutter_scenes": mine}
+
+    def markdown(self, results: dict) -> list[str]:
+        block = results.get("clutter")
+        if not block:
+            return []
+        cfg = results["config"]
+        lines = [
+            "## Grasp success in clutter (higher is better)",
+            "",
+            f"{len(results['clutter_scenes'])} scenes: a held-out target in a stable pose on a "
+            f"table with {c.NEIGHBOURS[0]}–{c.NEIGHBOURS[1]} other test-split objects around "
+            f"it, each {100 * c.GAP_M[0]:.0f}–{100 * c.GAP_M[1]:.0f} cm from it, seen in 4 "
+            "depth views with the target's mask (the neighbours occlude it in some); each row's "
+            f"top-1 grasp ({cfg['benchmark_candidates']} candidates), executed on the true "
+            "target with the true neighbours as dynamic bodies: guarded approach, close, lift, "
+            "shake. Success: the target held **and** no neighbour moved more than "
+            f"{100 * c.MOVE_LIMIT_M:.0f} cm or tilted more than {c.TILT_LIMIT_DEG:.0f}°. The "
+            "true-meshes row is what perfect completions of the target and the neighbours "
+            "would get; the last row is the planner that ignores the neighbours.",
+            "",
+            "| Row | Success | Rate | 95 % interval | Target held | Failures |",
+            "|---|---|---|---|---|---|",
+        ]
+        for row, cell in block.items():
+            rate = cell["success"] / cell["tested"] if cell["tested"] else None
+            failures = "; ".join(f"{n}× {why}" for why, n in cell["reasons"].items()) or "—"
+            lines.append(f"| {LABELS[row]} | {cell['success']}/{cell['tested']} | "
+                         f"{fmt(rate, GRASP_SUCCESS)} | {100 * cell['ci95'][0]:.0f}–"
+                         f"{100 * cell['ci95'][1]:.0f}% | {cell['held']}/{cell['tested']} | "
+                         f"{failures} |")
+        return lines + [""]
+
+
+TABLE = ClutterTable()
