@@ -17,8 +17,13 @@ below it is empty in :meth:`CompletionStream.completion`, so meshing, planning a
 see nothing under the table. The views then need their camera poses (the plane is in the world
 frame, the grid in the latest camera's).
 
-The whole stream state (model memory, current grid, latest logits, counters, the plane) serialises
-to bytes and back exactly, so a service can persist a session after every view.
+What else the views showed near the object (the neighbours on a table) a service may keep with
+the stream as obstacle voxels in the world frame (:meth:`CompletionStream.add_obstacles`); the
+completion does not use them.
+
+The whole stream state (model memory, current grid, latest logits, counters, the plane, the
+obstacles) serialises to bytes and back exactly, so a service can persist a session after every
+view.
 """
 
 from __future__ import annotations
@@ -32,6 +37,11 @@ import torch
 from completion import grid as G
 
 DEFAULT_THRESHOLD = 0.5
+#: The other objects a session's views showed (obstacles to the planner, :mod:`grasp.obstacles`)
+#: are kept as world-frame voxels of this side (m), at most this many (the nearest to the
+#: object's latest seen points are kept).
+OBSTACLE_PITCH_M = 0.005
+MAX_OBSTACLE_VOXELS = 50_000
 
 
 class NoObjectError(ValueError):
@@ -78,6 +88,8 @@ class CompletionStream:
         self._state = model.init_state(1)
         self._logits: np.ndarray | None = None
         self._observed: np.ndarray | None = None  # the latest view's input grid (bool)
+        # what else the views showed near the object: (n, 3) int32 world voxel keys
+        self.obstacle_keys = np.zeros((0, 3), dtype=np.int32)
         self.support_plane: np.ndarray | None = None  # world [nx, ny, nz, d], |n| = 1
 
     def set_support_plane(self, plane) -> None:
@@ -137,6 +149,27 @@ class CompletionStream:
         result = self._step(occ, transform, camera_to_world)
         self._seen_bounds = bounds
         return result
+
+    def add_obstacles(self, points: np.ndarray) -> int:
+        """Keep ``points`` (world frame, (m, 3)) as obstacle voxels of :data:`OBSTACLE_PITCH_M`
+        with those kept before (at most :data:`MAX_OBSTACLE_VOXELS`: the nearest to the object's
+        latest seen points); how many are kept now."""
+        points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+        points = points[np.isfinite(points).all(axis=1)]
+        keys = np.floor(points / OBSTACLE_PITCH_M).astype(np.int32)
+        keys = np.unique(np.concatenate([self.obstacle_keys, keys]), axis=0)
+        if len(keys) > MAX_OBSTACLE_VOXELS:
+            centre = np.zeros(3)
+            if self.seen and self.camera_to_world is not None:
+                centre = G.transform_points(self.observed_points(), self.camera_to_world).mean(0)
+            distance = np.linalg.norm((keys + 0.5) * OBSTACLE_PITCH_M - centre, axis=1)
+            keys = keys[np.sort(np.argsort(distance, kind="stable")[:MAX_OBSTACLE_VOXELS])]
+        self.obstacle_keys = keys.astype(np.int32)
+        return len(keys)
+
+    def obstacle_points(self) -> np.ndarray:
+        """The obstacle voxels' centres (n, 3), world frame."""
+        return (self.obstacle_keys + 0.5) * OBSTACLE_PITCH_M
 
     def _step(self, occ: np.ndarray, transform, camera_to_world) -> ViewResult:
         frame = torch.from_numpy(np.ascontiguousarray(occ, dtype=np.float32))[None]
@@ -207,6 +240,8 @@ class CompletionStream:
             arrays["observed"] = np.packbits(self._observed.reshape(-1))
         if self.support_plane is not None:
             arrays["support_plane"] = self.support_plane
+        if len(self.obstacle_keys):
+            arrays["obstacle_keys"] = self.obstacle_keys
         np.savez(buf, **arrays)
         return buf.getvalue()
 
@@ -225,6 +260,8 @@ class CompletionStream:
             if "observed" in z:
                 stream._observed = G.VoxelGrid.unpack(z["observed"].tobytes())
             stream.support_plane = z["support_plane"] if "support_plane" in z else None
+            if "obstacle_keys" in z:
+                stream.obstacle_keys = z["obstacle_keys"]
             # states stored before "seen" existed: seen once a grid was fitted
             stream.seen = bool(z["seen"]) if "seen" in z else stream.grid_to_camera is not None
         return stream

@@ -35,10 +35,18 @@ from scipy.spatial import cKDTree
 
 from hands.barrett import BH8_282, LINK_NAMES, BarrettParams, HandKinematics
 
-__all__ = ["CLOSING_STEP_DEG", "DEFAULT_PITCH_M", "Hit", "Obstacles", "hit_reason", "sweep_hit"]
+__all__ = ["CLOSING_STEP_DEG", "DEFAULT_PITCH_M", "Hit", "Obstacles", "hit_reason", "seen_others",
+           "sweep_hit"]
 
 #: Side of an obstacle voxel (metres): fine beside a 2-10 cm gap, bounded in count.
 DEFAULT_PITCH_M = 0.005
+#: What a view's other pixels keep as obstacles (:func:`seen_others`): points higher than this
+#: above the table (m; lower ones are the table), within this reach of the target's points
+#: (m, horizontally: what a hand grasping it can meet), and farther than this from them (m: a
+#: label image's rim around the target, flying pixels, are not a neighbour).
+ABOVE_TABLE_M = 0.01
+REACH_M = 0.3
+TARGET_MARGIN_M = 0.01
 #: The closing is checked every this many degrees of joint motion (a finger link's box is grown
 #: by about 2 mm for its turn between two samples).
 CLOSING_STEP_DEG = 2.5
@@ -86,6 +94,32 @@ class Obstacles:
         """The same voxels' centres moved by the rigid ``matrix`` (4, 4), re-snapped."""
         matrix = np.asarray(matrix, dtype=np.float64)
         return Obstacles(self.centres @ matrix[:3, :3].T + matrix[:3, 3], self.pitch)
+
+
+def seen_others(others: np.ndarray, target: np.ndarray, plane: np.ndarray) -> np.ndarray:
+    """Which of a view's other points (not the target's, world frame, (m, 3)) are obstacles:
+    above the table ``plane`` ((4,), n·x + d = 0, n up) by :data:`ABOVE_TABLE_M`, within
+    :data:`REACH_M` of the target's points ``target`` ((n, 3), world) along the table, and not
+    within :data:`TARGET_MARGIN_M` of them. One rule for the service's views and the
+    evaluation's (:func:`grasp.evaluate.clutter.seen_obstacles`)."""
+    others = np.asarray(others, dtype=np.float64).reshape(-1, 3)
+    target = np.asarray(target, dtype=np.float64).reshape(-1, 3)
+    if len(others) == 0 or len(target) == 0:
+        return others[:0]
+    normal, offset = np.asarray(plane[:3], float), float(plane[3])
+    others = others[others @ normal + offset > ABOVE_TABLE_M]
+    if len(others) == 0:
+        return others
+
+    def flat(p: np.ndarray) -> np.ndarray:  # projected onto the table
+        return p - np.outer(p @ normal + offset, normal)
+
+    along, _ = cKDTree(flat(target)).query(flat(others), distance_upper_bound=REACH_M)
+    others = others[np.isfinite(along)]
+    if len(others):
+        distance, _ = cKDTree(target).query(others)
+        others = others[distance > TARGET_MARGIN_M]
+    return others
 
 
 @dataclass(frozen=True)

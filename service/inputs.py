@@ -53,6 +53,9 @@ class DecodedView:
     camera_to_world: np.ndarray | None = None  # (4, 4) float64
     support_plane: np.ndarray | None = None  # (4,) world frame, kept by the session
     background: np.ndarray | None = None  # (m, 3) some of a masked depth image's other pixels
+    # (k, 3) camera frame: the pixels that may be obstacles (outside the mask, or the
+    # obstacle_mask's), one about every OBSTACLE_PITCH_M at their depth; None: none sent
+    others: np.ndarray | None = None
     check_frames: bool = True  # service.frames checks this view (the body's check_frames)
 
     def add_view_kwargs(self) -> dict:
@@ -104,11 +107,17 @@ def decode_view(
     depth = _depth(view.depth, max_image_pixels)  # (H, W) uint16 mm or float32 m, as sent
     _plausible_intrinsics(view.intrinsics, depth.shape)
     mask = None if view.mask is None else _mask(view.mask, depth.shape, view.object_label)
+    outside = None  # the pixels that may be obstacles
+    if view.obstacles and view.obstacle_mask is not None:
+        outside = _mask(view.obstacle_mask, depth.shape, None, ("body", "obstacle_mask"))
+    elif view.obstacles and mask is not None:
+        outside = ~mask
     step = thinning_step(depth, mask, max_points)
     k = view.intrinsics
     if step > 1:  # every step-th pixel along both axes: the same camera at a lower resolution
         depth = depth[::step, ::step].copy()  # copies, so that the full images are freed now
         mask = None if mask is None else mask[::step, ::step].copy()
+        outside = None if outside is None else outside[::step, ::step].copy()
     _some_depth(depth, mask, view.depth.encoding)  # on the thinned image: no full-size copies
     intrinsics = Intrinsics(k.fx / step, k.fy / step, k.cx / step, k.cy / step,
                             width=depth.shape[1], height=depth.shape[0])
@@ -119,9 +128,10 @@ def decode_view(
     with np.errstate(over="ignore", invalid="ignore"):
         points = depth_to_points(metres, intrinsics, mask)
         background = None if mask is None else _background(metres, intrinsics, mask)
+        others = None if outside is None else _others(metres, intrinsics, outside)
     points = _checked_points(points, from_depth=True)
     _plausible_distance(points, max_point_distance_m, ("body", "depth", "data"), MILLIMETRES_HINT)
-    return DecodedView(points=points, background=background, **posed)
+    return DecodedView(points=points, background=background, others=others, **posed)
 
 
 #: At most this many of the background's points are kept to check the support plane against.
@@ -141,6 +151,24 @@ def _background(metres: np.ndarray, intrinsics: Intrinsics, mask: np.ndarray) ->
                      height=metres[::step, ::step].shape[0])
     points = depth_to_points(metres[::step, ::step], sub, outside[::step, ::step], cleaning=None)
     return points[np.isfinite(points).all(axis=1)][:BACKGROUND_POINTS]
+
+
+def _others(metres: np.ndarray, intrinsics: Intrinsics, outside: np.ndarray) -> np.ndarray:
+    """The pixels of ``outside`` with a depth, back-projected (cleaned of flying pixels as the
+    object's are) one about every :data:`completion.stream.OBSTACLE_PITCH_M` at their median
+    depth: as dense as the obstacle voxels they fill, and no denser."""
+    from completion.stream import OBSTACLE_PITCH_M
+
+    valid = outside & np.isfinite(metres) & (metres > 0)
+    if not valid.any():
+        return np.zeros((0, 3))
+    spacing = float(np.median(metres[valid])) / intrinsics.fx  # metres between two pixels
+    step = max(1, int(OBSTACLE_PITCH_M / spacing))
+    sub = Intrinsics(intrinsics.fx / step, intrinsics.fy / step, intrinsics.cx / step,
+                     intrinsics.cy / step, width=metres[::step, ::step].shape[1],
+                     height=metres[::step, ::step].shape[0])
+    points = depth_to_points(metres[::step, ::step], sub, valid[::step, ::step])
+    return points[np.isfinite(points).all(axis=1)]
 
 
 MILLIMETRES_HINT = "it looks like millimetres: send png16_mm (uint16 millimetres) or divide by 1000"
@@ -363,16 +391,19 @@ def _depth(depth: DepthIn, max_pixels: int) -> np.ndarray:
     return millimetres.astype(np.uint16, copy=False)
 
 
-def _mask(text: str, shape: tuple[int, int], label: int | None = None) -> np.ndarray:
+def _mask(text: str, shape: tuple[int, int], label: int | None = None,
+          loc: tuple = ("body", "mask")) -> np.ndarray:
     """The object's pixels: a 0/1 or 0/255 mask, or the pixels equal to ``label`` in a label
-    image; anything else is refused with the values it holds."""
-    loc = ("body", "mask")
+    image; anything else is refused with the values it holds. (An obstacle mask: ``loc``
+    names it, and its non-zero pixels are the obstacles.)"""
     image = _png(_base64(text, loc), loc, ("L", "1", "P"), "an 8-bit single-channel PNG")
     h, w = shape
     if image.size != (w, h):
         raise InputError(
-            loc, f"mask is {image.size[0]}×{image.size[1]} but the depth image is {w}×{h}"
+            loc, f"{loc[-1]} is {image.size[0]}×{image.size[1]} but the depth image is {w}×{h}"
         )
+    if loc[-1] == "obstacle_mask":
+        return _pixels(image, loc) != 0
     try:
         return object_pixels(_pixels(image, loc), label, kind="an 8-bit PNG")
     except ValueError as exc:

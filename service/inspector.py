@@ -22,6 +22,7 @@ import trimesh
 from fastapi import APIRouter, Depends, Request, Response
 from fastapi.responses import FileResponse
 
+from completion.grid import transform_points
 from grasp_client.wire import SupportPlane
 from service.deps import ServicesDep, require_token
 from service.routes import (
@@ -63,12 +64,17 @@ async def view_page(session_id: PathId) -> FileResponse:
     "/sessions/{session_id}/observed", response_model=ObservedOut, responses=_errors(404, 409)
 )
 async def get_observed(session_id: PathId, services: ServicesDep) -> ObservedOut:
-    """The latest view's observed voxel centres, in its camera frame (the completion's)."""
+    """The latest view's observed voxel centres and the session's obstacle voxels, in its
+    camera frame (the completion's)."""
     snapshot = await services.infer(services.pipeline.snapshot, session_id)
+    obstacles = np.zeros((0, 3))
+    if snapshot.obstacles is not None and len(snapshot.obstacles):
+        obstacles = transform_points(snapshot.obstacles, np.linalg.inv(snapshot.camera_to_world))
     return ObservedOut(
         session_id=session_id,
         views=snapshot.record.views,
         points=np.round(snapshot.observed, 6).tolist(),
+        obstacles=np.round(obstacles, 6).tolist(),
     )
 
 

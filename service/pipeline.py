@@ -58,6 +58,7 @@ class Snapshot:
     camera_to_world: np.ndarray | None  # (4, 4) of the latest view, when given
     observed: np.ndarray  # (n, 3) the latest view's observed voxel centres
     support_plane: np.ndarray | None = None  # (4,) world frame, when the session keeps one
+    obstacles: np.ndarray | None = None  # (k, 3) obstacle voxel centres, world frame
 
 
 class Pipeline:
@@ -93,6 +94,7 @@ class Pipeline:
             stream = CompletionStream(self.model)
             self._check(stream, view)
             result = _step(stream, view)
+            _keep_obstacles(stream, view)
             session_id = uuid.uuid4().hex
             self.store.create(
                 session_id,
@@ -116,6 +118,7 @@ class Pipeline:
             stream = self._stream(record)
             self._check(stream, view)
             result = _step(stream, view)
+            _keep_obstacles(stream, view)
             try:
                 self.store.update(
                     record,
@@ -215,7 +218,22 @@ class Pipeline:
 
 def _snapshot(record: SessionRecord, stream: CompletionStream, completion: Completion) -> Snapshot:
     return Snapshot(record, completion, stream.camera_to_world, stream.observed_points(),
-                    stream.support_plane)
+                    stream.support_plane, stream.obstacle_points())
+
+
+def _keep_obstacles(stream: CompletionStream, view: DecodedView) -> None:
+    """Keep the view's other pixels that are obstacles (:func:`grasp.obstacles.seen_others`)
+    with the session, world frame: a view with a camera pose, in a session with a table."""
+    if (view.others is None or view.camera_to_world is None or stream.support_plane is None
+            or not len(view.others) or view.points is None or not len(view.points)):
+        return
+    from grasp.obstacles import seen_others
+
+    pose = view.camera_to_world
+    kept = seen_others(transform_points(view.others, pose), transform_points(view.points, pose),
+                       stream.support_plane)
+    if len(kept):
+        stream.add_obstacles(kept)
 
 
 def _step(stream: CompletionStream, view: DecodedView) -> ViewResult:

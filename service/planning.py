@@ -52,18 +52,23 @@ def plan_grasps(
     top_k: int,
     support_plane=None,
     budget: int | None = None,
+    obstacles: np.ndarray | None = None,
 ) -> tuple[list, float]:
     """``grasp.planner.plan`` on the mesh (vertices (v, 3), faces (f, 3)); also its seconds.
 
     ``support_plane``: a ``grasp.table.SupportPlane`` in the mesh's frame, or None; ``budget``:
-    candidates autograsped (None: the planner's default)."""
+    candidates autograsped (None: the planner's default); ``obstacles``: obstacle voxel centres
+    (k, 3) in the mesh's frame (:class:`grasp.obstacles.Obstacles`), or None."""
     import trimesh
 
+    from grasp.obstacles import Obstacles
     from grasp.planner import plan
 
     mesh = trimesh.Trimesh(vertices, faces, process=False)
     start = time.perf_counter()
     options = {} if budget is None else {"budget": budget}
+    if obstacles is not None and len(obstacles):
+        options["obstacles"] = Obstacles(obstacles)
     results = plan(mesh, n_candidates=n_candidates, seed=seed, top_k=top_k,
                    support_plane=support_plane, **options)
     return results, time.perf_counter() - start
@@ -139,6 +144,7 @@ class Planner:
         seed: int,
         top_k: int,
         support_plane=None,
+        obstacles: np.ndarray | None = None,
         verify: int = 0,
         gone: Callable[[], Awaitable[bool]] | None = None,
     ) -> tuple[list, float, bool]:
@@ -146,9 +152,10 @@ class Planner:
         cache or from the same plan another request was computing (then the seconds are those
         of the original plan): identical concurrent plans are computed once. ``verify``: lift-test
         at most this many of the best grasps (:func:`_verified`). ``gone``: an async check that
-        the client disconnected, asked once a worker is free."""
+        the client disconnected, asked once a worker is free. ``obstacles``: voxel centres
+        (k, 3) in the mesh's frame the hand keeps clear of (:mod:`grasp.obstacles`)."""
         options = (top_k, self.budget, verify)
-        key = _plan_key(vertices, faces, n_candidates, seed, options, support_plane)
+        key = _plan_key(vertices, faces, n_candidates, seed, options, support_plane, obstacles)
         if key in self._cache:
             self._cache.move_to_end(key)
             self.cache_hits += 1
@@ -162,13 +169,13 @@ class Planner:
                     raise  # this request was cancelled itself
                 # the computing request's client went, or its worker: plan for this one
                 return await self.plan(vertices, faces, n_candidates=n_candidates, seed=seed,
-                                       top_k=top_k, support_plane=support_plane, verify=verify,
-                                       gone=gone)
+                                       top_k=top_k, support_plane=support_plane,
+                                       obstacles=obstacles, verify=verify, gone=gone)
         shared = asyncio.get_running_loop().create_future()
         self._inflight[key] = shared
         try:
             result = await self._admitted(key, vertices, faces, n_candidates, seed, top_k,
-                                          support_plane, verify, gone)
+                                          support_plane, obstacles, verify, gone)
         except asyncio.CancelledError:
             shared.cancel()
             raise
@@ -183,7 +190,7 @@ class Planner:
         return (*result, False)
 
     async def _admitted(self, key, vertices, faces, n_candidates, seed, top_k, support_plane,
-                        verify, gone) -> tuple[list, float]:
+                        obstacles, verify, gone) -> tuple[list, float]:
         """The plan run by a worker once admitted (bounded queue), verified, then cached."""
         if self._pending >= self.workers + self.queue:
             raise PlannerBusy(
@@ -199,7 +206,7 @@ class Planner:
                 if verify:  # the lift test's convex pieces, in another worker meanwhile
                     pieces = asyncio.ensure_future(self._slot(partial(decompose, vertices, faces)))
                 result = await self._run(vertices, faces, n_candidates, seed,
-                                         None if verify else top_k, support_plane)
+                                         None if verify else top_k, support_plane, obstacles)
             if verify:
                 start = time.perf_counter()
                 await pieces
@@ -240,7 +247,7 @@ class Planner:
         async with self._running:
             return await self._call(call)
 
-    async def _run(self, vertices, faces, n_candidates, seed, top_k, support_plane):
+    async def _run(self, vertices, faces, n_candidates, seed, top_k, support_plane, obstacles):
         call = partial(
             plan_grasps,
             vertices,
@@ -250,6 +257,7 @@ class Planner:
             top_k=top_k,
             support_plane=support_plane,
             budget=self.budget,
+            obstacles=obstacles,
         )
         return await self._call(call)
 
@@ -288,11 +296,13 @@ async def _gather(calls):
     return await asyncio.gather(*calls)
 
 
-def _plan_key(vertices, faces, n_candidates, seed, top_k, support_plane) -> str:
-    """The identity of a plan: the mesh's bytes and every option."""
+def _plan_key(vertices, faces, n_candidates, seed, top_k, support_plane, obstacles=None) -> str:
+    """The identity of a plan: the mesh's bytes, the obstacles' and every option."""
     digest = hashlib.sha1()
     digest.update(np.ascontiguousarray(vertices, dtype="<f8").tobytes())
     digest.update(np.ascontiguousarray(faces, dtype="<i8").tobytes())
+    if obstacles is not None and len(obstacles):
+        digest.update(b"obstacles" + np.ascontiguousarray(obstacles, dtype="<f8").tobytes())
     plane = None if support_plane is None else (
         *np.round(support_plane.normal, 12).tolist(), round(support_plane.offset, 12)
     )

@@ -98,6 +98,15 @@ class ViewIn(_Strict):
         "is cut at it (nothing below the table) and every grasp treats it as an obstacle",
     )
 
+    obstacles: bool = Field(
+        True, description="with a depth image, a mask and a camera_pose, in a session with a "
+        "support plane: every pixel outside the mask with a depth, off the table and within "
+        "30 cm of the object, is an obstacle every grasp keeps clear of (kept with the session, "
+        "world frame); false: none from this view")
+    obstacle_mask: str | None = Field(
+        None, description="with depth: base64 8-bit PNG of the depth image's size whose "
+        "non-zero pixels are the obstacles, instead of every pixel outside the mask")
+
     check_frames: bool = Field(
         True, description="check camera_pose and support_plane against what this view shows "
         "(the camera above the table, the object on it and where earlier views saw it): a "
@@ -113,8 +122,9 @@ class ViewIn(_Strict):
             )
         if self.depth is not None and self.intrinsics is None:
             raise ValueError("depth needs intrinsics {fx, fy, cx, cy}")
-        if self.depth is None and (self.intrinsics is not None or self.mask is not None):
-            raise ValueError("intrinsics and mask go with depth only")
+        if self.depth is None and (self.intrinsics is not None or self.mask is not None
+                                   or self.obstacle_mask is not None):
+            raise ValueError("intrinsics, mask and obstacle_mask go with depth only")
         if self.object_label is not None and self.mask is None:
             raise ValueError("object_label goes with a mask (a label image)")
         return self
@@ -146,6 +156,10 @@ class GraspsOut(BaseModel):
         description="the support plane the grasps respect, [nx, ny, nz, d] in the latest "
         "camera frame (n·x + d = 0, n up), when one was given",
     )
+    obstacle_voxels: int = Field(
+        0, description="obstacle voxels (5 mm) the session keeps, which every grasp keeps clear "
+        "of (POST /views' obstacles); a grasp they ruled out says so in its reason"
+    )
     timing_ms: dict[str, float] = Field(
         description="load, completion, mesh, planning; waiting (for a free worker); total"
     )
@@ -156,6 +170,9 @@ class ObservedOut(BaseModel):
     views: int
     points: list[list[float]] = Field(
         description="centres of the latest view's observed voxels, its camera frame, metres"
+    )
+    obstacles: list[list[float]] = Field(
+        [], description="centres of the session's obstacle voxels, the same camera frame"
     )
 
 

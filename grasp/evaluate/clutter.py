@@ -14,8 +14,9 @@ the true target with the true neighbours as dynamic bodies on the table
 than :data:`MOVE_LIMIT_M` or tilted more than :data:`TILT_LIMIT_DEG`:
 
 - ``true_meshes``: planned on the true target, the true neighbours as obstacles;
-- ``mvp_4views_obstacles``: MVP's completion of the target's 4 views, the neighbours' pixels of
-  those views as obstacles (:func:`seen_obstacles`), as the service does;
+- ``mvp_4views_obstacles``: MVP's completion of the target's 4 views, the other pixels of those
+  views as obstacles (:func:`seen_obstacles`: off the table, near the target), as the service
+  does with a view's pixels outside the target's mask;
 - ``mvp_4views_ignoring``: the same completion, the neighbours ignored (the planner before).
 """
 
@@ -31,7 +32,7 @@ import trimesh
 from completion import grid as G
 from completion.objects import load_object
 from grasp.evaluate.benchmark import TABLE, VIEWS, benchmark_objects, grasp_kind
-from grasp.obstacles import Obstacles
+from grasp.obstacles import Obstacles, seen_others
 
 CLUTTER_ROWS: tuple[str, ...] = ("true_meshes", "mvp_4views_obstacles", "mvp_4views_ignoring")
 #: Neighbours per scene (inclusive), and the gap (m) between each one's footprint and the
@@ -58,7 +59,7 @@ class ClutterScene:
     gaps_m: list[float]  # each neighbour's footprint gap to the target's
     depth: np.ndarray  # (VIEWS, H, W) float32 metres, with the sensor model
     mask: np.ndarray  # (VIEWS, H, W) bool: the target's pixels
-    others: np.ndarray  # (VIEWS, H, W) bool: the neighbours' pixels
+    others: np.ndarray  # (VIEWS, H, W) bool: the neighbours' pixels (what a label image tells)
     cameras: np.ndarray  # (VIEWS, 4, 4) camera→world
     intrinsics: G.Intrinsics
 
@@ -171,12 +172,18 @@ def clutter_scene(index: int, seed: int, renderer) -> ClutterScene:
 
 
 def seen_obstacles(scene: ClutterScene, views: int = VIEWS) -> Obstacles:
-    """The neighbours' pixels of the first ``views`` views with a depth, back-projected to the
-    world: what the service keeps of a label image's other objects."""
-    points = [G.transform_points(G.depth_to_points(scene.depth[t], scene.intrinsics,
-                                                   scene.others[t]), scene.cameras[t])
-              for t in range(views)]
-    return Obstacles(np.concatenate(points) if points else np.zeros((0, 3)))
+    """Every pixel of the first ``views`` views outside the target's mask with a depth,
+    back-projected to the world and kept as the service keeps a view's other pixels
+    (:func:`grasp.obstacles.seen_others`: off the table, near the target, not its rim)."""
+    kept = []
+    for t in range(views):
+        outside = ~scene.mask[t]
+        others = G.transform_points(G.depth_to_points(scene.depth[t], scene.intrinsics, outside),
+                                    scene.cameras[t])
+        target = G.transform_points(G.depth_to_points(scene.depth[t], scene.intrinsics,
+                                                      scene.mask[t]), scene.cameras[t])
+        kept.append(seen_others(others, target, TABLE))
+    return Obstacles(np.concatenate(kept) if kept else np.zeros((0, 3)))
 
 
 def disturbed(result) -> str | None:

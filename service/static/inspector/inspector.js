@@ -2,7 +2,7 @@
 //   GET /grasp?session_id=…   grasps (palm pose, joints, ε, volume, the hand's primitives placed
 //                             by its kinematics), the camera pose and the support plane
 //   GET /sessions/{id}/mesh?format=obj   the completion mesh
-//   GET /sessions/{id}/observed          the latest view's observed points
+//   GET /sessions/{id}/observed          the latest view's observed points, the obstacles
 // Everything is in the latest view's camera frame (OpenCV: x right, y down, z forward); the
 // root group turns it into three.js's y-up convention.
 import * as THREE from 'three';
@@ -174,6 +174,11 @@ async function main() {
   const points = new THREE.BufferGeometry();
   points.setAttribute('position', new THREE.Float32BufferAttribute(observed.points.flat(), 3));
   root.add(new THREE.Points(points, new THREE.PointsMaterial({ color: 0x1f5fd6, size: 0.004 })));
+  if (observed.obstacles && observed.obstacles.length) { // the neighbours the grasps avoid
+    const others = new THREE.BufferGeometry();
+    others.setAttribute('position', new THREE.Float32BufferAttribute(observed.obstacles.flat(), 3));
+    root.add(new THREE.Points(others, new THREE.PointsMaterial({ color: 0xc0392b, size: 0.005 })));
+  }
 
   const box = new THREE.Box3().setFromObject(completion);
   const centre = box.getCenter(new THREE.Vector3()); // camera frame
@@ -265,7 +270,8 @@ async function main() {
   }
   statusEl.dataset.state = 'ready';
   statusEl.textContent = `${plan.grasps.length} grasp(s), ${observed.points.length} observed ` +
-    `points, ${plan.views} view(s)`;
+    `points, ${plan.views} view(s)` +
+    (plan.obstacle_voxels ? `, ${plan.obstacle_voxels} obstacle voxels (red)` : '');
 }
 
 main().catch(fail);

@@ -1,0 +1,92 @@
+"""The neighbours a robot's views show, kept by the session as obstacles (issue 61): depth views
+with the target's mask (or label image), a camera pose and a table; the obstacles accumulate in
+the world frame across views, outlive a restart, and reach the planner and the inspector."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from fastapi.testclient import TestClient
+from service_helpers import settings
+
+from grasp_client.wire import b64, depth_f32_m, png_bytes
+from service.app import create_app
+
+TABLE = [0.0, 0.0, 1.0, 0.0]
+
+
+@pytest.fixture(scope="module")
+def clutter():
+    """The clutter table's first scene: a target, its neighbours and a pan of 4 views."""
+    from completion.render import Renderer
+    from grasp.evaluate.clutter import clutter_scene
+
+    renderer = Renderer()
+    try:
+        return clutter_scene(0, 0, renderer)
+    finally:
+        renderer.close()
+
+
+def view(scene, t: int, *, label: bool = False, **extra) -> dict:
+    k = scene.intrinsics
+    if label:  # a label image: 7 the target, 3 the neighbours, 0 the rest
+        labels = np.where(scene.mask[t], 7, np.where(scene.others[t], 3, 0)).astype(np.uint8)
+        masks = {"mask": b64(png_bytes(labels)), "object_label": 7}
+    else:
+        masks = {"mask": b64(png_bytes(scene.mask[t].astype(np.uint8)))}
+    return {"depth": depth_f32_m(scene.depth[t].astype(np.float32)),
+            "intrinsics": {"fx": k.fx, "fy": k.fy, "cx": k.cx, "cy": k.cy},
+            "camera_pose": scene.cameras[t].tolist(), "support_plane": TABLE,
+            **masks, **extra}
+
+
+def _obstacles_world(client, sid: str) -> tuple[np.ndarray, dict]:
+    plan = client.get("/grasp", params={"session_id": sid, "n_candidates": 4}).json()
+    seen = client.get(f"/sessions/{sid}/observed").json()
+    camera = np.asarray(plan["camera_pose"])
+    local = np.asarray(seen["obstacles"]).reshape(-1, 3)
+    return local @ camera[:3, :3].T + camera[:3, 3], plan
+
+
+def test_obstacles_accumulate_across_views_in_the_world_frame_and_outlive_a_restart(
+        tmp_path, tiny_model, clutter):
+    from trimesh.proximity import closest_point
+
+    config = settings(tmp_path, tiny_model, max_points=500_000)
+    with TestClient(create_app(config)) as client:
+        first = client.post("/views", json=view(clutter, 0, label=True))
+        assert first.status_code == 200, first.text
+        sid = first.json()["session_id"]
+        once, plan = _obstacles_world(client, sid)
+        assert plan["obstacle_voxels"] == len(once) > 50
+        r = client.post("/views", json=view(clutter, 2) | {"session_id": sid})
+        assert r.status_code == 200, r.text
+        twice, plan = _obstacles_world(client, sid)
+        assert plan["obstacle_voxels"] == len(twice) > len(once)  # another side seen
+        # every obstacle voxel lies on a neighbour (the sensor's noise, the voxel's size)
+        to_neighbours = np.min([closest_point(m, twice)[1] for m in clutter.neighbours], axis=0)
+        assert np.percentile(to_neighbours, 95) < 0.015
+        assert (closest_point(clutter.target, twice)[1] > 0.01).all()
+    with TestClient(create_app(config)) as client:  # the same store, a new server
+        again, plan = _obstacles_world(client, sid)
+        assert plan["obstacle_voxels"] == len(twice)
+        assert np.allclose(np.sort(again, axis=0), np.sort(twice, axis=0), atol=1e-6)
+
+
+def test_a_view_may_send_its_obstacles_or_none(tmp_path, tiny_model, clutter):
+    config = settings(tmp_path, tiny_model, max_points=500_000)
+    with TestClient(create_app(config)) as client:
+        none = client.post("/views", json=view(clutter, 0, obstacles=False)).json()
+        assert _obstacles_world(client, none["session_id"])[1]["obstacle_voxels"] == 0
+        own = view(clutter, 0, obstacle_mask=b64(png_bytes(clutter.others[0].astype(np.uint8))))
+        sent = client.post("/views", json=own).json()
+        assert _obstacles_world(client, sent["session_id"])[1]["obstacle_voxels"] > 50
+        wrong = view(clutter, 0, obstacle_mask=b64(png_bytes(np.ones((4, 4), np.uint8))))
+        r = client.post("/views", json=wrong)
+        assert r.status_code == 422 and r.json()["detail"][0]["loc"] == ["body", "obstacle_mask"]
+        # a label image in which the target's label is absent
+        r = client.post("/views", json=view(clutter, 0, label=True) | {"object_label": 9})
+        assert r.status_code == 422 and "9" in r.text
+        r = client.post("/views", json={"points": [[0, 0, 0.5]], "obstacle_mask": "x"})
+        assert r.status_code == 422 and "go with depth only" in r.text
