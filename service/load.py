@@ -9,6 +9,7 @@ session afterwards). Talks to loopback addresses only, and stops by itself::
     python -m service &                       # or any running server
     python -m service.load --url http://127.0.0.1:8000 --sessions 32 --views 12
     python -m service.load --url http://127.0.0.1:8000 --sessions 2 --grasp-every-view
+    python -m service.load --url http://127.0.0.1:8000 --condition clutter --sessions 2 --views 4
 """
 
 from __future__ import annotations
@@ -120,9 +121,12 @@ def make_bodies(
     n_scenes: int, views: int, seed: int, condition: str = "camera_pan"
 ) -> list[list[dict]]:
     """``n_scenes`` simulated scenes of ``condition`` (test split) as lists of view bodies; a
-    tabletop scene's first view carries its table as the session's support plane."""
+    tabletop scene's first view carries its table as the session's support plane; a clutter
+    scene (:func:`clutter_views`) is the clutter table's."""
     from completion.scenes import make_sequence
 
+    if condition == "clutter":
+        return [clutter_views(i, seed, views) for i in range(n_scenes)]
     scenes = []
     for i in range(n_scenes):
         seq = make_sequence(condition, "test", i, seed, views=views, keep_depth=True)
@@ -131,6 +135,42 @@ def make_bodies(
             bodies[0]["support_plane"] = list(seq.meta["support_plane"])
         scenes.append(bodies)
     return scenes
+
+
+def clutter_views(index: int, seed: int, views: int) -> list[dict]:
+    """The clutter table's scene ``index`` (:func:`grasp.evaluate.clutter.clutter_scene`: a
+    target among 2-5 neighbours on a table) as view bodies: each a depth PNG with a label image
+    (the target 1, the neighbours 2, the rest 0), its camera pose, the table with the first.
+    The scene has 4 views; more are its pan again."""
+    from completion.render import Renderer
+    from grasp.evaluate.benchmark import TABLE
+    from grasp.evaluate.clutter import clutter_scene
+    from grasp_client.wire import depth_png16_mm, intrinsics_field
+
+    renderer = Renderer()
+    try:
+        scene = clutter_scene(index, seed, renderer)
+    finally:
+        renderer.close()
+    k = scene.intrinsics
+    bodies = []
+    for i in range(views):
+        t = i % len(scene.depth)
+        labels = np.where(scene.mask[t], 1, np.where(scene.others[t], 2, 0)).astype(np.uint8)
+        bodies.append({"depth": depth_png16_mm(scene.depth[t]),
+                       "intrinsics": intrinsics_field({"fx": k.fx, "fy": k.fy, "cx": k.cx,
+                                                       "cy": k.cy}),
+                       "mask": _label_png(labels),
+                       "object_label": 1, "camera_pose": scene.cameras[t].tolist()})
+    bodies[0]["support_plane"] = TABLE.tolist()
+    return bodies
+
+
+def _label_png(labels: np.ndarray) -> str:
+    """A label image as the ``mask`` field (8-bit PNG, the values as they are)."""
+    from grasp_client.wire import b64, png_bytes
+
+    return b64(png_bytes(labels))
 
 
 async def _timed(client, tally: Tally, route: str, method: str, url: str, **kwargs):
@@ -213,9 +253,12 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--views", type=int, default=12, help="views per session (at least 2)")
     p.add_argument("--concurrency", type=int, default=8, help="sessions streaming at once")
     p.add_argument("--scenes", type=int, default=4, help="distinct simulated scenes, cycled")
-    p.add_argument("--condition", choices=("camera_pan", "tabletop"), default="camera_pan",
+    p.add_argument("--condition", choices=("camera_pan", "tabletop", "clutter"),
+                   default="camera_pan",
                    help="the scenes: objects floating (camera_pan) or resting on a table whose "
-                   "plane each session is given with its first view (tabletop)")
+                   "plane each session is given with its first view (tabletop), or among 2-5 "
+                   "other objects there, sent with label images (clutter: the evaluation's "
+                   "clutter scenes; their neighbours become obstacles)")
     p.add_argument("--n-candidates", type=int, default=64, help="GET /grasp n_candidates")
     p.add_argument("--verify", type=int, default=None,
                    help="GET /grasp verify: grasps lift-tested before the answer (default: the "

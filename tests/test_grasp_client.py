@@ -210,3 +210,28 @@ def test_grasp_from_json_keeps_the_documented_joint_order():
     assert list(grasp.joints) == list(JOINT_NAMES)
     np.testing.assert_array_equal(grasp.joint_array, np.arange(8.0))
     assert grasp.palm_pose_world is None and grasp.contacts[0].link == "palm"
+
+
+def test_a_robot_sends_a_label_image_and_the_grasps_keep_clear_of_the_other_objects(server):
+    """Issue 61: a label image's other objects become the session's obstacles; the client says
+    how many the grasps kept clear of, and refuses an obstacle mask of the wrong size."""
+    from completion.render import Renderer
+    from grasp.evaluate.clutter import clutter_scene
+
+    renderer = Renderer()
+    try:
+        scene = clutter_scene(0, 0, renderer)
+    finally:
+        renderer.close()
+    k = scene.intrinsics
+    with GraspClient(server.url, token="secret") as client, \
+            client.session(support_plane=[0.0, 0.0, 1.0, 0.0]) as session:
+        for t in (0, 2):
+            labels = np.where(scene.mask[t], 5, np.where(scene.others[t], 9, 0)).astype(np.uint8)
+            session.add_view(scene.depth[t], (k.fx, k.fy, k.cx, k.cy), mask=labels,
+                             object_label=5, camera_pose=scene.cameras[t])
+        session.grasps(n_candidates=4)
+        assert session.last_obstacle_voxels > 50
+        with pytest.raises(InvalidRequest, match="obstacle_mask"):
+            session.add_view(scene.depth[0], (k.fx, k.fy, k.cx, k.cy), mask=scene.mask[0],
+                             obstacle_mask=np.ones((4, 4)))

@@ -197,6 +197,7 @@ class Session:
         self.support_plane = support_plane
         self.id: str | None = None
         self.last_reason: str | None = None  # why the last grasps() found none
+        self.last_obstacle_voxels = 0  # obstacle voxels the last grasps() kept clear of
 
     @property
     def inspector_url(self) -> str:
@@ -207,7 +208,8 @@ class Session:
 
     def add_view(self, depth: np.ndarray, K: Any, *, mask: np.ndarray | None = None,
                  object_label: int | None = None, camera_pose: np.ndarray | None = None,
-                 encoding: str | None = None, check_frames: bool = True) -> dict:
+                 encoding: str | None = None, check_frames: bool = True,
+                 obstacles: bool = True, obstacle_mask: np.ndarray | None = None) -> dict:
         """Send one depth image: (H, W) or (H, W, 1) metres (float) or millimetres (uint16), 0 or
         NaN = no return; ``encoding`` a ROS name to check it against ("32FC1", "16UC1",
         "mono16"). ``K``: a 3×3 camera matrix, ROS's flat 9-number ``CameraInfo.k``, its 3×4
@@ -215,8 +217,11 @@ class Session:
         with 0 = background, or a label image with ``object_label``, the value of the object's
         pixels. ``camera_pose`` 4×4 camera→world (OpenCV camera frame: x right, y down, z
         forward). ``check_frames=False`` skips the service's check of the pose and the support
-        plane against what the view shows. Returns the service's answer (``view_index``,
-        ``observed_voxels``, ``occupied_voxels``)."""
+        plane against what the view shows. With a mask, a camera pose and a support plane, the
+        view's other pixels near the object (off the table) become obstacles every grasp keeps
+        clear of, kept by the session (``obstacles=False``: none from this view;
+        ``obstacle_mask`` (H, W), non-zero = obstacle: these pixels instead). Returns the
+        service's answer (``view_index``, ``observed_voxels``, ``occupied_voxels``)."""
         depth = _squeeze(depth, "depth")
         body = {"depth": _depth_field(depth, encoding), "intrinsics": _intrinsics(K)}
         if mask is not None:
@@ -225,6 +230,14 @@ class Session:
         elif object_label is not None:
             raise _invalid("object_label", "object_label names the object's value in a label "
                            "image: it needs mask")
+        if not obstacles:
+            body["obstacles"] = False
+        elif obstacle_mask is not None:
+            others = np.asarray(_squeeze(obstacle_mask, "obstacle_mask"))
+            if others.shape != np.shape(depth):
+                raise _invalid("obstacle_mask", f"obstacle_mask is {others.shape}, the depth "
+                               f"image {np.shape(depth)}: give one of the image's size")
+            body["obstacle_mask"] = mask_png(others != 0)
         return self._post(body, camera_pose, check_frames)
 
     def add_points(self, points: np.ndarray, *, camera_pose: np.ndarray | None = None,
@@ -256,6 +269,7 @@ class Session:
             params["verify"] = int(verify)
         out = self.client.request("GET", "/grasp", params=params).json()
         self.last_reason = out.get("reason")
+        self.last_obstacle_voxels = int(out.get("obstacle_voxels", 0))
         return [Grasp.from_json(g) for g in out["grasps"]]
 
     def mesh(self):
