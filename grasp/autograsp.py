@@ -60,7 +60,7 @@ from grasp.collision import CollisionScene, Contact, check_pose
 from grasp.pinch import TABLE_PINCH, close_pinching, faces_table
 from grasp.quality import EPSILON_NO_CLOSURE, MU_RUBBER, contacts_quality
 from grasp.table import SupportPlane
-from hands.barrett import FINGERS, JOINT_NAMES
+from hands.barrett import BH8_282, FINGERS, JOINT_NAMES, BarrettParams
 
 if TYPE_CHECKING:
     from grasp_client.wire import Verification, WristRise
@@ -155,6 +155,8 @@ class GraspResult:
         A table pinch's (:mod:`grasp.pinch`): the palm's rise along its −z against the closing
         fingers' DOF; ``palm_pose`` is where closing starts, :attr:`end_palm_pose` where it ends
         (the pose of ``joints_deg`` and ``contacts``). None for every other grasp.
+    preshape_deg : float
+        The fingers' DOF while the hand approached, from which they closed (0: open).
     """
 
     success: bool
@@ -172,6 +174,7 @@ class GraspResult:
     hold_probability: float = math.nan
     verification: Verification | None = None
     wrist_rise: WristRise | None = None
+    preshape_deg: float = 0.0
 
     @property
     def kind(self) -> str:
@@ -215,6 +218,8 @@ class GraspResult:
         }
         if self.verification is not None:  # only plans that verified say it
             out["verification"] = dataclasses.asdict(self.verification)
+        if self.preshape_deg:  # only pre-shaped grasps
+            out["preshape_deg"] = self.preshape_deg
         if self.wrist_rise is not None:  # only table pinches
             out["kind"] = self.kind
             out["wrist_rise"] = dataclasses.asdict(self.wrist_rise)
@@ -223,6 +228,14 @@ class GraspResult:
 
 
 # -- helpers ---------------------------------------------------------------------------------------
+def preshaped(spread_deg: float, preshape_deg: float, params: BarrettParams = BH8_282):
+    """The 8 joints (degrees) of the hand at ``spread_deg`` with every finger at DOF
+    ``preshape_deg`` (J2 = DOF up to its limit, J3 = DOF × the distal ratio): the hand as it
+    approaches."""
+    j2, j3 = min(preshape_deg, params.proximal_max_deg), preshape_deg * params.distal_ratio
+    return [spread_deg, j2, j3, spread_deg, j2, j3, j2, j3]
+
+
 def pregrasp_pose(palm_pose: np.ndarray, backoff: float = PREGRASP_BACKOFF_M) -> np.ndarray:
     """(4, 4) palm pose backed off by ``backoff`` metres along its approach axis (−z)."""
     return shift(check_pose(palm_pose), -float(backoff))
@@ -252,6 +265,7 @@ def autograsp(
     quality: bool = True,
     support_plane: SupportPlane | None = None,
     pinch: bool = False,
+    preshape_deg: float = 0.0,
 ) -> GraspResult:
     """Approach the object along the palm's +z and close the BarrettHand on it (GraspIt! rules).
 
@@ -284,6 +298,10 @@ def autograsp(
         should end the approach where the open hand's lowest point is
         :data:`grasp.pinch.TIP_CLEARANCE_M` above the table: an approach that touches the object
         first is a failure (too tall to pinch from there).
+    preshape_deg : float
+        The fingers' DOF while the hand approaches (0: open), from which they close: a hand
+        pre-shaped among other objects (:mod:`grasp.obstacles`) is narrower than the open one,
+        whose fingertips reach 16 cm from the palm's axis.
 
     Returns
     -------
@@ -301,8 +319,12 @@ def autograsp(
     if pinch and (scene.support_plane is None or not faces_table(palm, scene.support_plane)):
         raise ValueError("a table pinch needs a support plane and the palm facing it "
                          "(palm +z along the plane's −n)")
+    if not 0.0 <= preshape_deg < params.finger_dof_max_deg or (pinch and preshape_deg):
+        raise ValueError(f"preshape_deg must be in [0, {params.finger_dof_max_deg}) degrees "
+                         f"(0 for a table pinch), got {preshape_deg}")
     spread = math.radians(spread_deg)
-    open_rad = np.radians([spread_deg, 0, 0, spread_deg, 0, 0, 0, 0])
+    open_rad = np.radians(preshaped(spread_deg, preshape_deg, params))
+    preshape = math.radians(preshape_deg)
     search = Search(scene)
 
     travel, approach_stop = 0.0, "none"
@@ -335,7 +357,7 @@ def autograsp(
         palm, closed, wrist_rise = close_pinching(search, start, spread_deg, step)
     else:
         closed = [close_finger(search, palm @ scene.kinematics.knuckle_pose(finger, spread),
-                                finger, step) for finger in FINGERS]
+                                finger, step, start=preshape) for finger in FINGERS]
     dofs, joints, stops = [], {}, []
     for finger, (q, j2, j3, stop) in zip(FINGERS, closed, strict=True):
         dofs.append(math.degrees(q))
@@ -362,6 +384,7 @@ def autograsp(
         finger_stops=tuple(stops),
         approach_stop=approach_stop,
         wrist_rise=wrist_rise,
+        preshape_deg=float(preshape_deg),
     )
     if reason != _NOT_SCORED and contacts:  # a failure whatever the contacts' quality
         return dataclasses.replace(result, epsilon=EPSILON_NO_CLOSURE, volume=0.0)

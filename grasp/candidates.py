@@ -48,6 +48,7 @@ class Candidate:
     source: str  # "principal", "sphere", or with a support plane "top", "pinch" (fingertips,
     # the palm still) or "table pinch" (the palm rising, grasp.pinch)
     travel: float | None = None  # longest approach (metres); None: the planner's
+    preshape_deg: float = 0.0  # the fingers' DOF on the way in (0: open; grasp.obstacles)
 
 
 def principal_axes(mesh: trimesh.Trimesh) -> np.ndarray:

@@ -198,6 +198,7 @@ def sweep_hit(
     joints_deg: Sequence[float],
     *,
     end_palm_pose: np.ndarray | None = None,
+    preshape_deg: float = 0.0,
     params: BarrettParams = BH8_282,
 ) -> Hit | None:
     """The first place where the hand, moving as planned, reaches an obstacle (None: clear).
@@ -205,13 +206,15 @@ def sweep_hit(
     ``start_pose``: the pre-grasp palm pose (the open hand, fingers at the grasp's spread);
     ``palm_pose``: where the approach stopped and closing starts; ``joints_deg``: the closed
     hand's 8 joints; ``end_palm_pose``: where the palm is when closing ends (a table pinch's
-    rise; default ``palm_pose``)."""
+    rise; default ``palm_pose``); ``preshape_deg``: the fingers' DOF on the way in (0: open)."""
     if obstacles is None or len(obstacles) == 0:
         return None
     hand = _hand(params)
+    from grasp.autograsp import preshaped
+
     closed = np.radians(np.asarray(joints_deg, dtype=np.float64))
-    opened = np.zeros(8)
-    opened[[0, 3]] = closed[[0, 3]]  # the spread is set before the approach
+    # the spread is set before the approach, the fingers at their pre-shape
+    opened = np.radians(preshaped(float(np.degrees(closed[0])), preshape_deg, params))
     start, stop = np.asarray(start_pose, float), np.asarray(palm_pose, float)
     end = stop if end_palm_pose is None else np.asarray(end_palm_pose, float)
     hit = _first_hit(obstacles, hand.world_boxes(start, opened), stop[:3, 3] - start[:3, 3], 0.0,
@@ -233,7 +236,8 @@ def sweep_hit(
     for j, (link, _, half) in enumerate(samples[0]):
         centres = np.array([boxes[j][1][:3, 3] for boxes in samples])
         middle = 0.5 * (centres.min(axis=0) + centres.max(axis=0))
-        grown = half + obstacles.reach + float(np.linalg.norm(half)) * turn
+        turns = link.endswith(("_prox", "_dist"))  # the palm and the knuckles do not turn
+        grown = half + obstacles.reach + float(np.linalg.norm(half)) * turn * turns
         radius = float(np.linalg.norm(centres - middle, axis=1).max() + np.linalg.norm(grown))
         near = obstacles.near(middle, radius)
         if len(near) == 0:

@@ -35,7 +35,7 @@ from collections.abc import Sequence
 import numpy as np
 import trimesh
 
-from grasp.autograsp import GraspResult, autograsp, with_quality
+from grasp.autograsp import GraspResult, autograsp, preshaped, with_quality
 from grasp.candidates import (
     DEFAULT_SPREADS_DEG,
     STANDOFF_M,
@@ -73,6 +73,11 @@ PINCH_FIRST_HEIGHT_M = 0.06
 #: failure that says so (:mod:`grasp.lift_model`; on the benchmark's true meshes every top grasp
 #: below it dropped).
 HOLD_THRESHOLD = 0.5
+#: Among obstacles, a candidate whose open hand meets one, at the pre-grasp or on its way, is
+#: tried again with the fingers pre-shaped to this DOF (degrees) before the approach: the open
+#: BarrettHand's fingertips reach 16 cm from the palm's axis, pre-shaped ones about half that.
+#: Half of the proximal's 90° to the palm plane; not tuned.
+CLUTTER_PRESHAPE_DEG = 45.0
 
 def distinct(grasps: Sequence[GraspResult], k: int | None = None) -> list[GraspResult]:
     """The grasps in order, leaving out each one whose palm pose is within :data:`DISTINCT_M`
@@ -183,7 +188,8 @@ def plan(
         What the hand must not touch besides the object and the table (the neighbours,
         :mod:`grasp.obstacles`), in the mesh's frame: a candidate whose open hand meets one at
         the pre-grasp is not tried, and a grasp whose approach or closing would is refused with
-        the reason. None or empty: exactly the plan without.
+        the reason, the screen's next candidate autograsped in its place (the budget counts
+        the grasps the obstacles allow). None or empty: exactly the plan without.
     timings : dict or None
         Filled with each stage's seconds ("setup": the collision model and the candidates;
         "screen"; "autograsp"; "rank", with the quality measures; "verify") and the counts
@@ -223,31 +229,39 @@ def plan(
     else:
         candidates = table_candidates(scene.mesh, support_plane, travel=travel, **options)
     blocked = []
-    if obstacles is not None and len(obstacles):  # the open hand at the pre-grasp
-        blocked = [sweep_hit(obstacles, c.palm_pose, c.palm_pose, _open(c.spread_deg))
-                   for c in candidates]
-        kept = [i for i, hit in enumerate(blocked) if hit is None]
+    if obstacles is not None and len(obstacles):  # the open hand at the pre-grasp; else shaped
+        blocked = [_clear_at_start(obstacles, c) for c in candidates]
+        kept = [c for c in blocked if c is not None]
         # (every one blocked: all are tried, and refused with the reason)
-        candidates = [candidates[i] for i in kept] if kept else candidates
+        candidates = kept if kept else candidates
     lap("setup")
     screened = budget is not None and budget < len(candidates)
-    order = screen_order(scene, candidates, travel) if screened else list(range(len(candidates)))
-    order = sorted(order[:budget] if screened else order)  # candidate order breaks ties
+    ranked_order = (screen_order(scene, candidates, travel) if screened
+                    else list(range(len(candidates))))
+    batch = sorted(ranked_order[:budget] if screened else ranked_order)  # candidate order: ties
+    rest = ranked_order[budget:] if screened else []
     lap("screen")
-    results = []
-    for i in order:
-        c = candidates[i]
-        limit = travel if c.travel is None else c.travel
-        result = autograsp(scene, c.palm_pose, spread_deg=c.spread_deg, max_travel=limit,
-                           quality=False, pinch=c.source == TABLE_PINCH)
-        if support_plane is not None and crosses(support_plane, result):
-            continue
-        if obstacles is not None and result.contacts:
-            hit = sweep_hit(obstacles, c.palm_pose, result.palm_pose, result.joints_deg,
-                            end_palm_pose=result.end_palm_pose)
-            if hit is not None:
-                result = _refused(result, hit_reason(hit, scene.mesh))
-        results.append(result)
+    results, spent, shaped = [], 0, []
+    while batch:  # a grasp the obstacles refuse does not count: the next candidates take its place
+        refused = 0
+        for c in (candidates[i] if isinstance(i, int) else i for i in batch):
+            limit = travel if c.travel is None else c.travel
+            result = autograsp(scene, c.palm_pose, spread_deg=c.spread_deg, max_travel=limit,
+                               quality=False, pinch=c.source == TABLE_PINCH,
+                               preshape_deg=c.preshape_deg)
+            if support_plane is not None and crosses(support_plane, result):
+                continue
+            if obstacles is not None and result.contacts:
+                hit = sweep_hit(obstacles, c.palm_pose, result.palm_pose, result.joints_deg,
+                                end_palm_pose=result.end_palm_pose, preshape_deg=c.preshape_deg)
+                if hit is not None:
+                    result, refused = _refused(result, hit_reason(hit, scene.mesh)), refused + 1
+                    if not c.preshape_deg and c.source != TABLE_PINCH:  # try it pre-shaped
+                        shaped.append(dataclasses.replace(c, preshape_deg=CLUTTER_PRESHAPE_DEG))
+            results.append(result)
+        spent += len(batch)
+        take = max(refused - len(shaped), 0)
+        batch, shaped, rest = shaped[:refused] + sorted(rest[:take]), shaped[refused:], rest[take:]
     lap("autograsp")
     # every autograsped result is ranked; top_k only cuts the list
     tried = 0
@@ -272,13 +286,21 @@ def plan(
     lap("rank")
     if timings is not None:
         timings.update(stages, screened=len(candidates) if screened else 0,
-                       autograsped=len(order), verified=tried)
+                       autograsped=spent, verified=tried)
     return best
 
 
-def _open(spread_deg: float) -> np.ndarray:
-    """The open hand's 8 joints (degrees) at a spread."""
-    return np.array([spread_deg, 0.0, 0.0, spread_deg, 0.0, 0.0, 0.0, 0.0])
+def _clear_at_start(obstacles: Obstacles, c: Candidate) -> Candidate | None:
+    """``c`` if its open hand at the pre-grasp meets no obstacle; else ``c`` pre-shaped
+    (:data:`CLUTTER_PRESHAPE_DEG`) if that one meets none; else None."""
+    for shaped in (c, dataclasses.replace(c, preshape_deg=CLUTTER_PRESHAPE_DEG)):
+        joints = preshaped(c.spread_deg, shaped.preshape_deg)
+        if sweep_hit(obstacles, c.palm_pose, c.palm_pose, joints,
+                     preshape_deg=shaped.preshape_deg) is None:
+            return shaped
+        if c.source == TABLE_PINCH:
+            return None
+    return None
 
 
 def _refused(result: GraspResult, reason: str) -> GraspResult:
@@ -288,8 +310,9 @@ def _refused(result: GraspResult, reason: str) -> GraspResult:
 
 
 def obstacle_failure(blocked: Sequence, results: Sequence[GraspResult]) -> str | None:
-    """What the obstacles ruled out, when they did (None: nothing)."""
-    at_start = sum(hit is not None for hit in blocked)
+    """What the obstacles ruled out, when they did (None: nothing). ``blocked``: per candidate,
+    what the pre-grasp check kept (None: blocked)."""
+    at_start = sum(c is None for c in blocked)
     refused = sum("would hit an obstacle" in r.reason for r in results)
     if not at_start and not refused:
         return None

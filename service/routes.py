@@ -351,6 +351,7 @@ def _grasp_out(result, camera_to_world: np.ndarray | None) -> Grasp:
               for link, kind, size, pose in hand_primitives(result)],
         kind=result.kind,
         wrist_rise=result.wrist_rise,
+        preshape_deg=float(result.preshape_deg),
         end_palm_pose=end,
         end_palm_pose_world=None if world is None else world @ end,
     )

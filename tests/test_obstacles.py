@@ -108,3 +108,41 @@ def test_a_target_boxed_in_gets_no_grasp_and_the_reason_names_the_obstacles(targ
     assert not best.success
     assert "would hit an obstacle" in best.reason or "blocked at the pre-grasp" in best.reason
     assert "obstacles:" in best.reason
+
+
+def test_a_preshaped_hand_approaches_with_its_fingers_half_closed_and_closes_from_there(target):
+    from grasp.autograsp import autograsp
+
+    down = np.eye(4)
+    down[:3, :3] = [[1, 0, 0], [0, -1, 0], [0, 0, -1]]  # palm +z pointing down
+    down[:3, 3] = [0.0, 0.0, 0.35]
+    g = autograsp(target, down, spread_deg=0.0, max_travel=0.3, preshape_deg=45.0,
+                  support_plane=TABLE)
+    assert g.preshape_deg == 45.0 and min(g.dofs_deg[1:]) >= 45.0
+    assert "preshape_deg" in g.as_dict()
+    with pytest.raises(ValueError, match="preshape_deg"):
+        autograsp(target, down, preshape_deg=150.0)
+
+
+def test_among_neighbours_the_planner_preshapes_the_hand_where_the_open_one_would_touch():
+    """The clutter table's scene 4 (a 15 × 15 × 5 cm box among 4 neighbours): no open-hand
+    grasp is clear of them (the planner's best open-hand grasps touch one); the top grasp
+    approaches with the fingers at 45°, holds, and leaves the neighbours standing (the lift
+    test executes the pre-shape)."""
+    from grasp.autograsp import pregrasp_pose
+    from grasp.evaluate.clutter import scene_objects
+    from grasp.planner import CLUTTER_PRESHAPE_DEG
+
+    _, target, _, neighbours, _, _ = scene_objects(4, 0)
+    obstacles = Obstacles.from_meshes(neighbours)
+    best = plan(target, n_candidates=64, seed=0, top_k=1, support_plane=TABLE,
+                obstacles=obstacles)[0]
+    assert best.success and best.preshape_deg == CLUTTER_PRESHAPE_DEG
+    start = pregrasp_pose(best.palm_pose, 0.1)  # 10 cm back along the approach
+    assert sweep_hit(obstacles, start, best.palm_pose, best.joints_deg,
+                     preshape_deg=best.preshape_deg) is None
+    result = lift_test(target, best, seed=0, support_plane=TABLE, approach="guarded",
+                       neighbours=neighbours)
+    assert result.success and result.neighbour_moved < 0.005
+    prox = result.joints_deg[[1, 4, 6]]  # f1, f2, f3 proximal joints, executed
+    assert (prox >= CLUTTER_PRESHAPE_DEG - 2.0).all()

@@ -2,7 +2,8 @@
 
 Each scene (:func:`clutter_scene`) puts a held-out target (:func:`~grasp.evaluate.benchmark.
 benchmark_objects`' order) on the table in a stable pose and 2–5 neighbours around it (other
-test-split objects at most :data:`MAX_NEIGHBOUR_M` across, in stable poses), each at a gap of
+test-split objects at most :data:`MAX_NEIGHBOUR_M` across, in stable poses in which they stand
+still in the simulation when nudged, :func:`stands_still`), each at a gap of
 2–10 cm from the target and not touching the others: gaps that matter to a BarrettHand, whose
 open fingers reach 16 cm from the palm's axis. A depth camera pans 4 views around the target
 as in the benchmark; every view keeps the target's mask and the pixels of the neighbours
@@ -46,6 +47,13 @@ MOVE_LIMIT_M = 0.02
 TILT_LIMIT_DEG = 20.0
 #: Points sampled on each footprint to measure gaps (seeded).
 FOOTPRINT_POINTS = 400
+#: A neighbour must stand still on the table: nudged along the table at this speed (m/s, in two
+#: directions), it comes to rest within this distance (m) in this time (s). A capsule lying on
+#: its side is "stable" but rolls on at the least touch (one rolled 18 cm beside a target the
+#: hand never reached), which would count against whatever grasp is tried beside it.
+NUDGE_M_S = 0.05
+SETTLE_M = 0.01
+SETTLE_S = 1.0
 
 
 @dataclass
@@ -76,6 +84,30 @@ def _footprint(mesh: trimesh.Trimesh, seed: int) -> np.ndarray:
     """(n, 2) points of the mesh's outline seen from above: samples of its surface, xy."""
     points, _ = trimesh.sample.sample_surface(mesh, FOOTPRINT_POINTS, seed=seed)
     return np.concatenate([points, mesh.vertices])[:, :2]
+
+
+def stands_still(mesh: trimesh.Trimesh) -> bool:
+    """Whether ``mesh`` (world frame, resting on z = 0) on the lift test's table, nudged along
+    it at :data:`NUDGE_M_S` (along x, then y), comes to rest within :data:`SETTLE_M` in
+    :data:`SETTLE_S`."""
+    from completion.bullet import quiet_fds
+    from grasp.physics.world import DynamicWorld
+
+    for direction in ([1.0, 0.0, 0.0], [0.0, 1.0, 0.0]):
+        with quiet_fds(1), DynamicWorld(mesh, table_top=0.0) as world:
+            away = np.eye(4)
+            away[:3, 3] = mesh.bounds.mean(axis=0) + [0.0, 0.0, 1.0]  # the hand out of the way
+            world.place_hand(away, [0.0] * 8)
+            world.gravity(True)
+            c, body = world.client, world.object_id
+            start = np.array(c.getBasePositionAndOrientation(body)[0])
+            c.resetBaseVelocity(body, linearVelocity=(NUDGE_M_S * np.array(direction)).tolist())
+            for _ in range(round(SETTLE_S / world.settings.time_step)):
+                world.step()
+            end = np.array(c.getBasePositionAndOrientation(body)[0])
+        if float(np.linalg.norm(end - start)) >= SETTLE_M:
+            return False
+    return True
 
 
 def _gap(a: np.ndarray, b: np.ndarray) -> float:
@@ -133,7 +165,7 @@ def scene_objects(index: int, seed: int, pool_size: int = 200):
             if ids[i] == target_id:
                 continue
             mesh = _resting(ids[i], rng)
-            if max(mesh.extents) <= MAX_NEIGHBOUR_M:
+            if max(mesh.extents) <= MAX_NEIGHBOUR_M and stands_still(mesh):
                 yield ids[i], mesh
 
     names, meshes, gaps = place_neighbours(target, candidates(), rng)

@@ -10,7 +10,7 @@ import numpy as np
 import trimesh
 from scipy.spatial.transform import Rotation
 
-from grasp.autograsp import GraspResult, pregrasp_pose
+from grasp.autograsp import GraspResult, pregrasp_pose, preshaped
 from grasp.collision import check_mesh, check_pose
 from grasp.physics.settings import (
     APPROACHES,
@@ -161,7 +161,7 @@ def lift_test(
     directions = np.random.default_rng(seed).normal(size=(s.shake_count, 3))
     directions /= np.linalg.norm(directions, axis=1, keepdims=True)
     spread = float(grasp.dofs_deg.spread)
-    open_joints = [spread, 0.0, 0.0, spread, 0.0, 0.0, 0.0, 0.0]
+    open_joints = preshaped(spread, grasp.preshape_deg, params)  # the hand as it approaches
     backoff = pregrasp_pose(palm, s.pregrasp_backoff)[:3, 3] - palm[:3, 3]  # (3,) world
 
     with DynamicWorld(
@@ -178,7 +178,7 @@ def lift_test(
         if not table:
             world.hold_object(s.support_factor * world.mass * GRAVITY)
         world.place_hand(palm, open_joints, offset=backoff)
-        fingers = world.fingers()
+        fingers = world.fingers(grasp.preshape_deg)
         neighbours_at = world.neighbour_poses()
         # approach from the pre-grasp pose, hand open
         guarded = approach == "guarded"

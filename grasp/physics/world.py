@@ -349,18 +349,22 @@ class DynamicWorld:
                 self.joints[name].index, math.radians(spread_deg), self.settings.spread_torque
             )
 
-    def fingers(self) -> list[_Finger]:
-        """Fresh closing state of the three fingers (open)."""
+    def fingers(self, preshape_deg: float = 0.0) -> list[_Finger]:
+        """Fresh closing state of the three fingers, at DOF ``preshape_deg`` (0: open)."""
+        dof = math.radians(preshape_deg)
         return [
-            _Finger(self.joints[f"{f}_prox"].index, self.joints[f"{f}_dist"].index) for f in FINGERS
+            _Finger(self.joints[f"{f}_prox"].index, self.joints[f"{f}_dist"].index, dof=dof)
+            for f in FINGERS
         ]
 
     def hold_fingers_open(self, fingers: Sequence[_Finger]) -> None:
-        """Position-control every finger joint at 0 (open)."""
-        s = self.settings
+        """Position-control every finger joint where its DOF puts it before closing (J2 = DOF,
+        J3 = DOF × the distal ratio; 0: open)."""
+        s, p = self.settings, self.params
         for finger in fingers:
-            self._position(finger.prox, 0.0, s.proximal_torque)
-            self._position(finger.dist, 0.0, s.distal_torque)
+            j2 = min(finger.dof, math.radians(p.proximal_max_deg))
+            self._position(finger.prox, j2, s.proximal_torque)
+            self._position(finger.dist, finger.dof * p.distal_ratio, s.distal_torque)
 
     def drive_fingers(self, fingers: Sequence[_Finger]) -> None:
         """One control step of every finger: Barrett coupling and breakaway.

@@ -347,6 +347,9 @@ class Grasp:
     ] | None = None
     end_palm_pose_world: Annotated[np.ndarray, Array(
         (4, 4), "the same palm→world, when the latest view came with a camera_pose")] | None = None
+    preshape_deg: Annotated[float, Doc(
+        "the fingers' DOF (degrees) while the hand approaches, from which they close: 0 (open) "
+        "but among obstacles, where an open hand would touch one")] = 0.0
 
     @property
     def joints(self) -> dict[str, float]:
@@ -381,6 +384,7 @@ class Grasp:
             wrist_rise=None if g.get("wrist_rise") is None
             else WristRise.from_json(g["wrist_rise"]),
             end_palm_pose=pose("end_palm_pose"), end_palm_pose_world=pose("end_palm_pose_world"),
+            preshape_deg=float(g.get("preshape_deg", 0.0)),
         )
 
 
