@@ -99,31 +99,39 @@ def resting_object(object_id: str, index: int, seed: int):
 
 def make_scene(object_id: str, index: int, seed: int, renderer) -> Scene:
     """Place ``object_id`` on the table and render the pan; deterministic in its arguments."""
+    world, rng = resting_object(object_id, index, seed)
+    lo, hi = world.bounds
+    distance, elevation = rng.uniform(0.45, 0.8), np.radians(rng.uniform(45.0, 90.0))
+    azimuth = rng.uniform(0, 2 * np.pi) + np.radians(30.0) * np.arange(VIEWS)
+    noise = np.random.default_rng([seed, zlib.crc32(b"benchmark/noise"), index])
+    depths, labels, cameras = render_pan(renderer, [world], (lo + hi) / 2, distance, elevation,
+                                         azimuth, noise)
+    return Scene(object_id, world, depths, labels == 0, cameras, renderer.intrinsics)
+
+
+def render_pan(renderer, meshes, aim, distance: float, elevation: float, azimuth, noise):
+    """``meshes`` on the table seen from cameras ``distance`` from ``aim`` at ``elevation``
+    (radians), one per ``azimuth``: (views, H, W) depths through the sensor model (``noise``
+    its generator), index images (mesh i is i, the table ``len(meshes)``, nothing −1) and
+    camera→world poses."""
     from completion.render import SensorModel, look_at
     from completion.scenes import table_mesh
 
-    world, rng = resting_object(object_id, index, seed)
-    lo, hi = world.bounds
-    target = (lo + hi) / 2
-    distance, elevation = rng.uniform(0.45, 0.8), np.radians(rng.uniform(45.0, 90.0))
-    azimuth = rng.uniform(0, 2 * np.pi) + np.radians(30.0) * np.arange(VIEWS)
     renderer.clear()
-    renderer.add_mesh(world)
-    renderer.add_mesh(table_mesh())
-    sensor, noise = SensorModel(), np.random.default_rng([seed, zlib.crc32(b"benchmark/noise"),
-                                                          index])
-    depths, masks, cameras = [], [], []
+    for mesh in (*meshes, table_mesh()):
+        renderer.add_mesh(mesh)
+    sensor = SensorModel()
+    depths, labels, cameras = [], [], []
     for a in azimuth:
-        eye = target + distance * np.array([np.cos(a) * np.cos(elevation),
-                                            np.sin(a) * np.cos(elevation), np.sin(elevation)])
-        camera = look_at(eye, target)
+        eye = aim + distance * np.array([np.cos(a) * np.cos(elevation),
+                                         np.sin(a) * np.cos(elevation), np.sin(elevation)])
+        camera = look_at(eye, aim)
         depth, index_image = renderer.render(camera)
         depths.append(sensor.apply(depth, noise))
-        masks.append(index_image == 0)
+        labels.append(index_image)
         cameras.append(camera)
     renderer.clear()
-    return Scene(object_id, world, np.stack(depths), np.stack(masks), np.stack(cameras),
-                 renderer.intrinsics)
+    return np.stack(depths), np.stack(labels), np.stack(cameras)
 
 
 def completion_mesh(scene: Scene, source: str, views: int, models: dict):

@@ -32,7 +32,7 @@ import trimesh
 
 from completion import grid as G
 from completion.objects import load_object
-from grasp.evaluate.benchmark import TABLE, VIEWS, benchmark_objects, grasp_kind
+from grasp.evaluate.benchmark import TABLE, VIEWS, benchmark_objects, grasp_kind, render_pan
 from grasp.obstacles import Obstacles, seen_others
 
 CLUTTER_ROWS: tuple[str, ...] = ("true_meshes", "mvp_4views_obstacles", "mvp_4views_ignoring")
@@ -175,32 +175,15 @@ def scene_objects(index: int, seed: int, pool_size: int = 200):
 def clutter_scene(index: int, seed: int, renderer) -> ClutterScene:
     """Scene ``index``: the objects placed and the pan rendered (target first, so its index
     image value is 0; the neighbours 1…k; the table last)."""
-    from completion.render import SensorModel, look_at
-    from completion.scenes import table_mesh
-
     target_id, target, names, meshes, gaps, rng = scene_objects(index, seed)
     lo, hi = target.bounds
-    aim = (lo + hi) / 2
     distance, elevation = rng.uniform(0.5, 0.8), np.radians(rng.uniform(45.0, 90.0))
     azimuth = rng.uniform(0, 2 * np.pi) + np.radians(30.0) * np.arange(VIEWS)
-    renderer.clear()
-    for mesh in (target, *meshes, table_mesh()):
-        renderer.add_mesh(mesh)
     noise = np.random.default_rng([seed, zlib.crc32(b"clutter/noise"), index])
-    sensor = SensorModel()
-    depths, masks, others, cameras = [], [], [], []
-    for a in azimuth:
-        eye = aim + distance * np.array([np.cos(a) * np.cos(elevation),
-                                         np.sin(a) * np.cos(elevation), np.sin(elevation)])
-        camera = look_at(eye, aim)
-        depth, index_image = renderer.render(camera)
-        depths.append(sensor.apply(depth, noise))
-        masks.append(index_image == 0)
-        others.append((index_image >= 1) & (index_image <= len(meshes)))
-        cameras.append(camera)
-    renderer.clear()
-    return ClutterScene(target_id, target, names, meshes, gaps, np.stack(depths), np.stack(masks),
-                        np.stack(others), np.stack(cameras), renderer.intrinsics)
+    depths, labels, cameras = render_pan(renderer, [target, *meshes], (lo + hi) / 2, distance,
+                                         elevation, azimuth, noise)
+    return ClutterScene(target_id, target, names, meshes, gaps, depths, labels == 0,
+                        (labels >= 1) & (labels <= len(meshes)), cameras, renderer.intrinsics)
 
 
 def seen_obstacles(scene: ClutterScene, views: int = VIEWS) -> Obstacles:

@@ -61,6 +61,8 @@ class ClutterTable(Table):
                     key = _reason_kind(o["reason"]).split(" (")[0]
                     if key.startswith("held, but"):
                         key = "held, but a neighbour was knocked"
+                    elif "would hit an obstacle" in key:  # which finger, how far: one kind
+                        key = "no grasp planned: every grasp would touch a neighbour"
                     reasons[key] = reasons.get(key, 0) + 1
             block[row] = {"success": won, "tested": len(outcomes),
                           "held": sum(o["held"] for o in outcomes),
