@@ -33,7 +33,7 @@ import numpy as np
 import trimesh
 from scipy.spatial import cKDTree
 
-from hands.barrett import BH8_282, LINK_NAMES, BarrettParams, HandKinematics
+from hands.barrett import BH8_282, FINGERS, LINK_NAMES, BarrettParams, HandKinematics
 
 __all__ = ["CLOSING_STEP_DEG", "DEFAULT_PITCH_M", "Hit", "Obstacles", "hit_reason", "seen_others",
            "sweep_hit"]
@@ -151,6 +151,14 @@ def _box_sweep_hits(points: np.ndarray, pose: np.ndarray, half: np.ndarray,
     return lo <= hi
 
 
+#: What growing a finger link's box for a voxel's size and its turn between two closing samples
+#: adds at most to how far it reaches (m; √3 × (4.3 mm + 4 cm × 5°) is 14 mm).
+GROWTH_MARGIN_M = 0.02
+#: The links that turn while the fingers close, and each finger's (J2, J3) in the 8 joints.
+FINGER_LINKS = ("_prox", "_dist")
+_FINGER_JOINTS = ((1, 2), (4, 5), (6, 7))
+
+
 class _Hand:
     """The hand's links as boxes (each primitive's bounding box) for obstacle tests."""
 
@@ -160,6 +168,20 @@ class _Hand:
         self.boxes = {link: [(prim.pose, prim.half_extents())
                              for prim in self.kinematics.primitives_of(link)]
                       for link in LINK_NAMES}
+        # how far a finger's boxes reach from its knuckle, at any of its joints (sampled)
+        reach = 0.0
+        for q in np.radians(np.arange(0.0, params.finger_dof_max_deg + 1.0, 10.0)):
+            for link, pose in zip(("f1_prox", "f1_dist"), self.kinematics.finger_poses(
+                    np.eye(4), "f1", min(q, np.radians(params.proximal_max_deg)),
+                    q * params.distal_ratio), strict=True):
+                for local, half in self.boxes[link]:
+                    box = pose @ local
+                    reach = max(reach, float(np.linalg.norm(box[:3, 3]) + np.linalg.norm(half)))
+        self.finger_reach = reach
+        # and how far a knuckle lies from the palm's origin, at any spread
+        self.knuckle_reach = max(
+            float(np.linalg.norm(self.kinematics.knuckle_pose(f, s)[:3, 3]))
+            for f in FINGERS for s in np.radians([0.0, 90.0, 180.0]))
 
     def world_boxes(self, palm: np.ndarray, joints_rad: np.ndarray):
         """(link, box→world, half extents) of every primitive."""
@@ -179,15 +201,25 @@ def _hand(params: BarrettParams) -> _Hand:
 
 def _first_hit(obstacles: Obstacles, boxes, move: np.ndarray, grow: float,
                phase: str) -> Hit | None:
-    for link, pose, half in boxes:
-        half = half + obstacles.reach + grow
-        radius = float(np.linalg.norm(half)) + 0.5 * float(np.linalg.norm(move))
-        near = obstacles.near(pose[:3, 3] + 0.5 * move, radius)
-        if len(near) == 0:
+    """The first of ``boxes`` (link, box→world, half extents) that reaches a voxel while moving
+    by ``move``: one look-up of the voxels near them all, then each box's own."""
+    boxes = list(boxes)
+    if not boxes:
+        return None
+    centres = np.array([pose[:3, 3] for _, pose, _ in boxes]) + 0.5 * move
+    halves = [half + obstacles.reach + grow for _, _, half in boxes]
+    reach = np.array([np.linalg.norm(h) for h in halves]) + 0.5 * float(np.linalg.norm(move))
+    middle = 0.5 * (centres.min(axis=0) + centres.max(axis=0))
+    near = obstacles.near(middle, float((np.linalg.norm(centres - middle, axis=1) + reach).max()))
+    if len(near) == 0:
+        return None
+    for (link, pose, _), half, centre, r in zip(boxes, halves, centres, reach, strict=True):
+        mine = near[np.linalg.norm(near - centre, axis=1) <= r]
+        if len(mine) == 0:
             continue
-        hits = _box_sweep_hits(near, pose, half, move)
+        hits = _box_sweep_hits(mine, pose, half, move)
         if hits.any():
-            return Hit(link, phase, near[int(np.argmax(hits))])
+            return Hit(link, phase, mine[int(np.argmax(hits))])
     return None
 
 
@@ -221,32 +253,58 @@ def sweep_hit(
                      "approach")
     if hit is not None:
         return hit
+    if end_palm_pose is None and np.array_equal(closed, opened):
+        return None  # nothing moves after the approach
+    # the palm and the knuckles (the spread is set) move only with a pinch's rise: swept along it
+    fixed = [box for box in hand.world_boxes(stop, opened) if not box[0].endswith(FINGER_LINKS)]
+    hit = _first_hit(obstacles, fixed, end[:3, 3] - stop[:3, 3], 0.0, "closing")
+    if hit is not None:
+        return hit
     travel = float(np.max(np.abs(np.degrees(closed - opened))))
     steps = max(1, math.ceil(travel / CLOSING_STEP_DEG))
-    samples = []
-    for k in range(steps + 1):
-        s = k / steps
-        palm = stop.copy()
-        palm[:3, 3] = (1.0 - s) * stop[:3, 3] + s * end[:3, 3]
-        samples.append(list(hand.world_boxes(palm, (1.0 - s) * opened + s * closed)))
-    # between two samples each box is swept along its centre's motion and grown by what its
-    # turn adds: a link turns by at most its joints' change (the distal's orientation is
-    # J2 + J3), its corners by its half diagonal times that
+    # between two samples each finger link's box is swept along its centre's motion and grown
+    # by what its turn adds: a link turns by at most its joints' change (the distal's
+    # orientation is J2 + J3), its corners by its half diagonal times that
     turn = 2.0 * math.radians(travel) / steps
-    for j, (link, _, half) in enumerate(samples[0]):
-        centres = np.array([boxes[j][1][:3, 3] for boxes in samples])
-        middle = 0.5 * (centres.min(axis=0) + centres.max(axis=0))
-        turns = link.endswith(("_prox", "_dist"))  # the palm and the knuckles do not turn
-        grown = half + obstacles.reach + float(np.linalg.norm(half)) * turn * turns
-        radius = float(np.linalg.norm(centres - middle, axis=1).max() + np.linalg.norm(grown))
-        near = obstacles.near(middle, radius)
+    palms = [stop.copy() for _ in range(steps + 1)]
+    for k, palm in enumerate(palms):  # a pinch's palm rises while the fingers close
+        palm[:3, 3] = (1.0 - k / steps) * stop[:3, 3] + (k / steps) * end[:3, 3]
+    rise = float(np.linalg.norm(end[:3, 3] - stop[:3, 3]))
+    reach = hand.finger_reach + GROWTH_MARGIN_M  # a finger's boxes, grown, from its knuckle
+    hand_near = obstacles.near(0.5 * (stop[:3, 3] + end[:3, 3]),  # within any finger's reach
+                               0.5 * rise + hand.knuckle_reach + reach)
+    if len(hand_near) == 0:
+        return None
+    for finger, (i2, i3) in zip(FINGERS, _FINGER_JOINTS, strict=True):
+        knuckle = hand.kinematics.knuckle_pose(finger, float(closed[0]))
+        ends = [palms[0] @ knuckle, palms[-1] @ knuckle]
+        around = 0.5 * (ends[0][:3, 3] + ends[1][:3, 3])
+        span = 0.5 * float(np.linalg.norm(ends[1][:3, 3] - ends[0][:3, 3]))
+        near = hand_near[np.linalg.norm(hand_near - around, axis=1) <= span + reach]
         if len(near) == 0:
-            continue
-        for k in range(steps):
-            pose, move = samples[k][j][1], centres[k + 1] - centres[k]
-            hits = _box_sweep_hits(near, pose, grown, move)
-            if hits.any():
-                return Hit(link, "closing", near[int(np.argmax(hits))])
+            continue  # nothing within this finger's reach: it closes clear
+        samples = []
+        for k in range(steps + 1):
+            s = k / steps
+            j2, j3 = (1 - s) * opened[i2] + s * closed[i2], (1 - s) * opened[i3] + s * closed[i3]
+            poses = hand.kinematics.finger_poses(palms[k] @ knuckle, finger, j2, j3)
+            samples.append([(link, pose @ local, half)
+                            for link, pose in zip((f"{finger}_prox", f"{finger}_dist"), poses,
+                                                  strict=True)
+                            for local, half in hand.boxes[link]])
+        for j, (link, _, half) in enumerate(samples[0]):
+            grown = half + obstacles.reach + float(np.linalg.norm(half)) * turn
+            centres = np.array([boxes[j][1][:3, 3] for boxes in samples])
+            middle = 0.5 * (centres.min(axis=0) + centres.max(axis=0))
+            radius = float(np.linalg.norm(centres - middle, axis=1).max() + np.linalg.norm(grown))
+            mine = near[np.linalg.norm(near - middle, axis=1) <= radius]  # this box's reach
+            if len(mine) == 0:
+                continue
+            for k in range(steps):
+                pose = samples[k][j][1]
+                hits = _box_sweep_hits(mine, pose, grown, centres[k + 1] - centres[k])
+                if hits.any():
+                    return Hit(link, "closing", mine[int(np.argmax(hits))])
     return None
 
 
