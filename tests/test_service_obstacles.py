@@ -90,3 +90,34 @@ def test_a_view_may_send_its_obstacles_or_none(tmp_path, tiny_model, clutter):
         assert r.status_code == 422 and "9" in r.text
         r = client.post("/views", json={"points": [[0, 0, 0.5]], "obstacle_mask": "x"})
         assert r.status_code == 422 and "go with depth only" in r.text
+
+
+@pytest.mark.slow
+def test_a_session_keeps_its_obstacles_through_a_sigkill(tmp_path, tiny_model, clutter):
+    """Issue 61's bar: sessions with obstacles survive a restart (kill -9) with their obstacles."""
+    import httpx
+    from service_helpers import Server
+
+    store = tmp_path / "store.sqlite"
+    options = {"planning_processes": "false", "max_points": 500_000}
+
+    def voxels(server, sid) -> int:
+        r = httpx.get(f"{server.url}/grasp", params={"session_id": sid, "n_candidates": 4},
+                      timeout=300)
+        return r.json()["obstacle_voxels"]
+
+    first = Server(tmp_path, tiny_model, store, **options)
+    try:
+        sid = httpx.post(f"{first.url}/views", json=view(clutter, 0, label=True),
+                         timeout=60).json()["session_id"]
+        before = voxels(first, sid)
+    finally:
+        first.kill()
+    second = Server(tmp_path, tiny_model, store, **options)
+    try:
+        assert voxels(second, sid) == before > 50
+        r = httpx.post(f"{second.url}/views", json=view(clutter, 2) | {"session_id": sid},
+                       timeout=60)
+        assert r.status_code == 200 and voxels(second, sid) > before
+    finally:
+        second.stop()
