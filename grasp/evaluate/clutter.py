@@ -212,7 +212,8 @@ def disturbed(result) -> str | None:
 
 def run_scene(scene: ClutterScene, models: dict, rows, *, candidates: int, seed: int):
     """row -> {"success", "held", "reason", "kind", "neighbour_moved_m", "neighbour_tilt_deg",
-    "palm_pose"} for one scene. The completion rows plan on MVP's completion in its last
+    "preshape_deg", "planned_joints_deg", "palm_pose" (world, where the fingers closed)} for one
+    scene. The completion rows plan on MVP's completion in its last
     camera's frame, with the obstacles moved there; the referee runs on the true objects."""
     from grasp.evaluate.benchmark import completion_mesh
     from grasp.physics import lift_test
@@ -249,7 +250,9 @@ def run_scene(scene: ClutterScene, models: dict, rows, *, candidates: int, seed:
             else f"held, but {knocked}", "kind": grasp_kind(world),
             "neighbour_moved_m": round(result.neighbour_moved, 4),
             "neighbour_tilt_deg": round(result.neighbour_tilt_deg, 2),
-            "palm_pose": np.round(world.palm_pose, 6).tolist(),
+            "preshape_deg": world.preshape_deg,
+            "planned_joints_deg": np.round(world.joints_deg, 2).tolist(),
+            "palm_pose": np.round(world.end_palm_pose, 6).tolist(),  # where the fingers closed
         }
     return out
 

@@ -99,7 +99,8 @@ class ClutterTable(Table):
                          f"{fmt(rate, GRASP_SUCCESS)} | {100 * cell['ci95'][0]:.0f}–"
                          f"{100 * cell['ci95'][1]:.0f}% | {cell['held']}/{cell['tested']} | "
                          f"{failures} |")
-        return lines + [""]
+        return lines + ["", "clutter_failures.png shows the failed grasps of MVP's row with the "
+                        "obstacles: the target, its neighbours and the hand where it closed.", ""]
 
 
 TABLE = ClutterTable()
