@@ -139,7 +139,7 @@ def tiny_run(tmp_path_factory):
         "--weights", str(weights), "--objects", str(objects), "--count", "1",
         "--grasp-count", "1", "--physics-count", "1", "--named", "1",
         "--overhead", "4",  # tabletop test index 3 of seed 3 is seen from 81°
-        "--benchmark", "1", "--benchmark-candidates", "8",
+        "--benchmark", "1", "--benchmark-candidates", "8", "--clutter", "1",
         "--sensor", "1",  # one sequence per paper condition through the sensor model
         "--views", "3", "--candidates", "2", "--workers", "1", "--quiet",
         "--out", str(out), "--seed", "3",
@@ -273,9 +273,18 @@ def test_tiny_run_writes_its_reports(tiny_run):
             "grasping",
             "physics",
             "benchmark",
+            "clutter",
         }
         assert all(v >= 0 for v in stages.values()) and stages["grasping"] > 0
         assert stages["physics"] > 0
+    # the clutter table: one scene, every row (the tiny MVP's completions included)
+    clutter = results["clutter"]
+    assert set(clutter) == {"true_meshes", "mvp_4views_obstacles", "mvp_4views_ignoring"}
+    assert all(cell["tested"] == 1 and 0 <= cell["success"] <= cell["held"] <= 1
+               for cell in clutter.values())
+    [scene] = results["clutter_scenes"]
+    assert 2 <= len(scene["neighbours"]) <= 5 and all(0.02 <= g <= 0.1 for g in scene["gaps_m"])
+    assert "Grasp success in clutter" in (out / "results.md").read_text()
 
 
 def test_same_seed_same_numbers(tiny_run, tmp_path):

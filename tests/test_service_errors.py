@@ -72,7 +72,7 @@ BAD_VIEWS = [
     ("depth without intrinsics", lambda s: {"depth": _depth_view(s)["depth"]}, ["body"],
      "depth needs intrinsics"),
     ("mask without depth", lambda s: points_view() | {"mask": _depth_view(s)["mask"]}, ["body"],
-     "intrinsics and mask go with depth only"),
+     "intrinsics, mask and obstacle_mask go with depth only"),
     ("depth not base64", lambda s: _depth_view(s, data="@@@"), ["body", "depth", "data"],
      "depth.data must be standard base64"),
     ("depth not png", lambda s: _depth_view(s, data=b64(b"GIF89a" + bytes(20))),
