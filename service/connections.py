@@ -1,4 +1,4 @@
-"""Connection-level guards of ``python -m service``: read deadlines, a cap per client address,
+"""Connection-level guards of ``python -m service``: read deadlines, a cap per client,
 and early answers that every client can read.
 
 uvicorn (h11) has a keep-alive timeout and a global cap (``limit_concurrency``), but no deadline
@@ -63,7 +63,7 @@ from service.settings import Settings
 #: a client that sends its request before reading sees the 429 and not a reset.
 REFUSED_LINGER_S = 1.0
 
-#: Refused connections are logged once per client address and interval (seconds), with counts.
+#: Refused connections are logged once per client and interval (seconds), with counts.
 REFUSED_LOG_INTERVAL_S = 10.0
 
 #: A server that keys clients by token or forwarded address lets this many times the cap of
@@ -132,7 +132,7 @@ TESTED_UVICORN = ("0.54",)
 
 
 class RefusalLog:
-    """One log line per client address per ``interval_s`` for refused connections, however many
+    """One log line per client per ``interval_s`` for refused connections, however many
     there were: the first refusal is logged at once, the rest of the interval is counted and
     told on the next line ("… 5123 more since the last line")."""
 
