@@ -32,6 +32,15 @@ FIT_EXTENT_VOXELS = 32.0
 MIN_PITCH = 1e-3
 #: A point is inside a mesh when |generalised winding number| exceeds this.
 WINDING_THRESHOLD = 0.5
+#: Side (m) of the world-frame voxels a session keeps the other objects in view as, obstacles to
+#: the planner (:func:`voxel_keys`; ``CompletionStream.add_obstacles``, ``grasp.obstacles``).
+OBSTACLE_PITCH_M = 0.005
+
+
+def voxel_keys(points: np.ndarray, pitch: float) -> np.ndarray:
+    """(n, 3) int64 indices of the axis-aligned voxels of side ``pitch`` (one corner at the
+    origin) that hold ``points`` (n, 3); a voxel's centre is ``(key + 0.5) * pitch``."""
+    return np.floor(np.asarray(points, dtype=np.float64).reshape(-1, 3) / pitch).astype(np.int64)
 
 
 @dataclass(frozen=True)

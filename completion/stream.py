@@ -38,9 +38,8 @@ from completion import grid as G
 
 DEFAULT_THRESHOLD = 0.5
 #: The other objects a session's views showed (obstacles to the planner, :mod:`grasp.obstacles`)
-#: are kept as world-frame voxels of this side (m), at most this many (the nearest to the
-#: object's latest seen points are kept).
-OBSTACLE_PITCH_M = 0.005
+#: are kept as world-frame voxels of :data:`completion.grid.OBSTACLE_PITCH_M`, at most this many
+#: (the nearest to the object's latest seen points are kept).
 MAX_OBSTACLE_VOXELS = 50_000
 
 
@@ -151,25 +150,29 @@ class CompletionStream:
         return result
 
     def add_obstacles(self, points: np.ndarray) -> int:
-        """Keep ``points`` (world frame, (m, 3)) as obstacle voxels of :data:`OBSTACLE_PITCH_M`
+        """Keep ``points`` (world frame, (m, 3)) as obstacle voxels (:func:`G.voxel_keys`)
         with those kept before (at most :data:`MAX_OBSTACLE_VOXELS`: the nearest to the object's
         latest seen points); how many are kept now."""
         points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
         points = points[np.isfinite(points).all(axis=1)]
-        keys = np.floor(points / OBSTACLE_PITCH_M).astype(np.int32)
+        keys = G.voxel_keys(points, G.OBSTACLE_PITCH_M).astype(np.int32)
         keys = np.unique(np.concatenate([self.obstacle_keys, keys]), axis=0)
         if len(keys) > MAX_OBSTACLE_VOXELS:
             centre = np.zeros(3)
             if self.seen and self.camera_to_world is not None:
                 centre = G.transform_points(self.observed_points(), self.camera_to_world).mean(0)
-            distance = np.linalg.norm((keys + 0.5) * OBSTACLE_PITCH_M - centre, axis=1)
+            distance = np.linalg.norm(self._centres(keys) - centre, axis=1)
             keys = keys[np.sort(np.argsort(distance, kind="stable")[:MAX_OBSTACLE_VOXELS])]
         self.obstacle_keys = keys.astype(np.int32)
         return len(keys)
 
     def obstacle_points(self) -> np.ndarray:
         """The obstacle voxels' centres (n, 3), world frame."""
-        return (self.obstacle_keys + 0.5) * OBSTACLE_PITCH_M
+        return self._centres(self.obstacle_keys)
+
+    @staticmethod
+    def _centres(keys: np.ndarray) -> np.ndarray:
+        return (keys + 0.5) * G.OBSTACLE_PITCH_M
 
     def _step(self, occ: np.ndarray, transform, camera_to_world) -> ViewResult:
         frame = torch.from_numpy(np.ascontiguousarray(occ, dtype=np.float32))[None]

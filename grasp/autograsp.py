@@ -60,7 +60,8 @@ from grasp.collision import CollisionScene, Contact, check_pose
 from grasp.pinch import TABLE_PINCH, close_pinching, faces_table
 from grasp.quality import EPSILON_NO_CLOSURE, MU_RUBBER, contacts_quality
 from grasp.table import SupportPlane
-from hands.barrett import BH8_282, FINGERS, JOINT_NAMES, BarrettParams
+from hands.barrett import FINGERS, JOINT_NAMES
+from hands.barrett.kinematics import joints_from_dofs
 
 if TYPE_CHECKING:
     from grasp_client.wire import Verification, WristRise
@@ -228,14 +229,6 @@ class GraspResult:
 
 
 # -- helpers ---------------------------------------------------------------------------------------
-def preshaped(spread_deg: float, preshape_deg: float, params: BarrettParams = BH8_282):
-    """The 8 joints (degrees) of the hand at ``spread_deg`` with every finger at DOF
-    ``preshape_deg`` (J2 = DOF up to its limit, J3 = DOF × the distal ratio): the hand as it
-    approaches."""
-    j2, j3 = min(preshape_deg, params.proximal_max_deg), preshape_deg * params.distal_ratio
-    return [spread_deg, j2, j3, spread_deg, j2, j3, j2, j3]
-
-
 def pregrasp_pose(palm_pose: np.ndarray, backoff: float = PREGRASP_BACKOFF_M) -> np.ndarray:
     """(4, 4) palm pose backed off by ``backoff`` metres along its approach axis (−z)."""
     return shift(check_pose(palm_pose), -float(backoff))
@@ -323,7 +316,7 @@ def autograsp(
         raise ValueError(f"preshape_deg must be in [0, {params.finger_dof_max_deg}) degrees "
                          f"(0 for a table pinch), got {preshape_deg}")
     spread = math.radians(spread_deg)
-    open_rad = np.radians(preshaped(spread_deg, preshape_deg, params))
+    open_rad = np.radians(joints_from_dofs([spread_deg, *[preshape_deg] * 3], params=params))
     preshape = math.radians(preshape_deg)
     search = Search(scene)
 

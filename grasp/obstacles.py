@@ -1,11 +1,11 @@
 """Obstacles beside the object: the neighbours on a table, which the hand must not touch.
 
 A robot's table is rarely empty. The planner is given what it must keep clear of as a set of
-occupied voxels (:class:`Obstacles`, the centres of cubes of side ``pitch``), in the frame of
-the mesh it plans on: the voxels the service saw around the target (every non-table pixel that
-is not the target's, back-projected), or the surfaces of the neighbours' true meshes in the
-evaluation. Voxels, not meshes: a depth camera sees the neighbours' near sides only, and a voxel
-set of a stated pitch is bounded however many views add to it.
+occupied voxels (:class:`Obstacles`, the centres of cubes of side ``pitch``, in any orientation),
+in the frame of the mesh it plans on: the voxels the service saw around the target (every
+non-table pixel that is not the target's, back-projected), or the surfaces of the neighbours'
+true meshes in the evaluation. Voxels, not meshes: a depth camera sees the neighbours' near
+sides only, and a voxel set of a stated pitch is bounded however many views add to it.
 
 The hand keeps clear of them while it moves as the planner plans it (:func:`sweep_hit`):
 
@@ -33,13 +33,16 @@ import numpy as np
 import trimesh
 from scipy.spatial import cKDTree
 
+from completion.grid import OBSTACLE_PITCH_M, voxel_keys
 from hands.barrett import BH8_282, FINGERS, LINK_NAMES, BarrettParams, HandKinematics
+from hands.barrett.kinematics import joints_from_dofs
 
 __all__ = ["CLOSING_STEP_DEG", "DEFAULT_PITCH_M", "Hit", "Obstacles", "hit_reason", "seen_others",
            "sweep_hit"]
 
-#: Side of an obstacle voxel (metres): fine beside a 2-10 cm gap, bounded in count.
-DEFAULT_PITCH_M = 0.005
+#: Side of an obstacle voxel (metres): fine beside a 2-10 cm gap, bounded in count; the one a
+#: session keeps its obstacles at.
+DEFAULT_PITCH_M = OBSTACLE_PITCH_M
 #: What a view's other pixels keep as obstacles (:func:`seen_others`): points higher than this
 #: above the table (m; lower ones are the table), within this reach of the target's points
 #: (m, horizontally: what a hand grasping it can meet), and farther than this from them (m: a
@@ -53,21 +56,20 @@ CLOSING_STEP_DEG = 2.5
 
 
 class Obstacles:
-    """Occupied voxels to keep the hand clear of: (n, 3) centres, cubes of side ``pitch``.
+    """Occupied voxels to keep the hand clear of: (n, 3) centres of cubes of side ``pitch``, in
+    any orientation (a cube is tested by its half diagonal, :attr:`reach`, so voxels of a grid
+    moved into another frame need no new grid)."""
 
-    Points are snapped to the voxel grid of ``pitch`` (origin at 0), so that views adding the
-    same surface add no voxel twice."""
-
-    def __init__(self, points: np.ndarray, pitch: float = DEFAULT_PITCH_M) -> None:
-        points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
-        if not pitch > 0.0:
-            raise ValueError(f"pitch must be positive, got {pitch}")
-        if not np.isfinite(points).all():
-            raise ValueError("obstacle points must be finite")
-        self.pitch = float(pitch)
-        keys = np.unique(np.floor(points / pitch).astype(np.int64), axis=0)
-        self.centres = (keys + 0.5) * pitch
+    def __init__(self, centres: np.ndarray, pitch: float = DEFAULT_PITCH_M) -> None:
+        self.centres, self.pitch = _checked(centres, pitch)
         self._tree = cKDTree(self.centres) if len(self.centres) else None
+
+    @classmethod
+    def from_points(cls, points: np.ndarray, pitch: float = DEFAULT_PITCH_M) -> Obstacles:
+        """The voxels of side ``pitch`` that hold ``points`` (a depth camera's), each once
+        (:func:`completion.grid.voxel_keys`), so that views of one surface add nothing twice."""
+        points, pitch = _checked(points, pitch)
+        return cls((np.unique(voxel_keys(points, pitch), axis=0) + 0.5) * pitch, pitch)
 
     @classmethod
     def from_meshes(cls, meshes: Sequence[trimesh.Trimesh],
@@ -91,9 +93,18 @@ class Obstacles:
         return self.centres[self._tree.query_ball_point(centre, radius + self.reach)]
 
     def transformed(self, matrix: np.ndarray) -> Obstacles:
-        """The same voxels' centres moved by the rigid ``matrix`` (4, 4), re-snapped."""
+        """The same voxels moved by the rigid ``matrix`` (4, 4)."""
         matrix = np.asarray(matrix, dtype=np.float64)
         return Obstacles(self.centres @ matrix[:3, :3].T + matrix[:3, 3], self.pitch)
+
+
+def _checked(points: np.ndarray, pitch: float) -> tuple[np.ndarray, float]:
+    points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    if not pitch > 0.0:
+        raise ValueError(f"pitch must be positive, got {pitch}")
+    if not np.isfinite(points).all():
+        raise ValueError("obstacle points must be finite")
+    return points, float(pitch)
 
 
 def seen_others(others: np.ndarray, target: np.ndarray, plane: np.ndarray) -> np.ndarray:
@@ -242,18 +253,17 @@ def sweep_hit(
     if obstacles is None or len(obstacles) == 0:
         return None
     hand = _hand(params)
-    from grasp.autograsp import preshaped
-
     closed = np.radians(np.asarray(joints_deg, dtype=np.float64))
     # the spread is set before the approach, the fingers at their pre-shape
-    opened = np.radians(preshaped(float(np.degrees(closed[0])), preshape_deg, params))
+    spread = float(np.degrees(closed[0]))
+    opened = np.radians(joints_from_dofs([spread, *[preshape_deg] * 3], params=params))
     start, stop = np.asarray(start_pose, float), np.asarray(palm_pose, float)
     end = stop if end_palm_pose is None else np.asarray(end_palm_pose, float)
     hit = _first_hit(obstacles, hand.world_boxes(start, opened), stop[:3, 3] - start[:3, 3], 0.0,
                      "approach")
     if hit is not None:
         return hit
-    if end_palm_pose is None and np.array_equal(closed, opened):
+    if np.allclose(closed, opened) and np.allclose(end, stop):
         return None  # nothing moves after the approach
     # the palm and the knuckles (the spread is set) move only with a pinch's rise: swept along it
     fixed = [box for box in hand.world_boxes(stop, opened) if not box[0].endswith(FINGER_LINKS)]

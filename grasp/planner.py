@@ -35,7 +35,7 @@ from collections.abc import Sequence
 import numpy as np
 import trimesh
 
-from grasp.autograsp import GraspResult, autograsp, preshaped, with_quality
+from grasp.autograsp import GraspResult, autograsp, with_quality
 from grasp.candidates import (
     DEFAULT_SPREADS_DEG,
     STANDOFF_M,
@@ -52,6 +52,7 @@ from grasp.table import SupportPlane, crosses
 from grasp.verify import DEFAULT_VERIFY, VerifySettings, describe
 from grasp.verify import verify as verify_grasps
 from hands.barrett import JOINT_NAMES
+from hands.barrett.kinematics import joints_from_dofs
 
 #: Largest object the planner tries, as its bounding-box diagonal (metres). The open BH8-282
 #: spans about 0.3 m, so bigger shapes come back as failures (no force closure); one several
@@ -238,13 +239,13 @@ def plan(
     screened = budget is not None and budget < len(candidates)
     ranked_order = (screen_order(scene, candidates, travel) if screened
                     else list(range(len(candidates))))
-    batch = sorted(ranked_order[:budget] if screened else ranked_order)  # candidate order: ties
-    rest = ranked_order[budget:] if screened else []
+    first = sorted(ranked_order[:budget] if screened else ranked_order)  # candidate order: ties
+    batch, rest = [candidates[i] for i in first], ranked_order[budget:] if screened else []
     lap("screen")
-    results, spent, shaped = [], 0, []
+    results, spent, shaped, refusals = [], 0, [], 0
     while batch:  # a grasp the obstacles refuse does not count: the next candidates take its place
         refused = 0
-        for c in (candidates[i] if isinstance(i, int) else i for i in batch):
+        for c in batch:
             limit = travel if c.travel is None else c.travel
             result = autograsp(scene, c.palm_pose, spread_deg=c.spread_deg, max_travel=limit,
                                quality=False, pinch=c.source == TABLE_PINCH,
@@ -259,9 +260,10 @@ def plan(
                     if not c.preshape_deg and c.source != TABLE_PINCH:  # try it pre-shaped
                         shaped.append(dataclasses.replace(c, preshape_deg=CLUTTER_PRESHAPE_DEG))
             results.append(result)
-        spent += len(batch)
-        take = max(refused - len(shaped), 0)
-        batch, shaped, rest = shaped[:refused] + sorted(rest[:take]), shaped[refused:], rest[take:]
+        spent, refusals = spent + len(batch), refusals + refused
+        take = max(refused - len(shaped), 0)  # pre-shaped retries first, then the screen's next
+        batch = shaped[:refused] + [candidates[i] for i in sorted(rest[:take])]
+        shaped, rest = shaped[refused:], rest[take:]
     lap("autograsp")
     # every autograsped result is ranked; top_k only cuts the list
     tried = 0
@@ -279,7 +281,7 @@ def plan(
     if best and not best[0].success:
         why = [w for w in (support_plane and table_limits(scene.mesh, support_plane),
                            support_plane and pinch_failure(results),
-                           obstacle_failure(blocked, results))
+                           obstacle_failure(blocked, refusals))
                if w and w not in best[0].reason]
         if why:
             best[0] = dataclasses.replace(best[0], reason="; ".join([best[0].reason, *why]))
@@ -294,7 +296,7 @@ def _clear_at_start(obstacles: Obstacles, c: Candidate) -> Candidate | None:
     """``c`` if its open hand at the pre-grasp meets no obstacle; else ``c`` pre-shaped
     (:data:`CLUTTER_PRESHAPE_DEG`) if that one meets none; else None."""
     for shaped in (c, dataclasses.replace(c, preshape_deg=CLUTTER_PRESHAPE_DEG)):
-        joints = preshaped(c.spread_deg, shaped.preshape_deg)
+        joints = joints_from_dofs([c.spread_deg, *[shaped.preshape_deg] * 3])
         if sweep_hit(obstacles, c.palm_pose, c.palm_pose, joints,
                      preshape_deg=shaped.preshape_deg) is None:
             return shaped
@@ -309,11 +311,10 @@ def _refused(result: GraspResult, reason: str) -> GraspResult:
                                force_epsilon=-1.0)
 
 
-def obstacle_failure(blocked: Sequence, results: Sequence[GraspResult]) -> str | None:
+def obstacle_failure(blocked: Sequence, refused: int) -> str | None:
     """What the obstacles ruled out, when they did (None: nothing). ``blocked``: per candidate,
-    what the pre-grasp check kept (None: blocked)."""
+    what the pre-grasp check kept (None: blocked); ``refused``: grasps refused after closing."""
     at_start = sum(c is None for c in blocked)
-    refused = sum("would hit an obstacle" in r.reason for r in results)
     if not at_start and not refused:
         return None
     return (f"obstacles: {at_start} of {len(blocked)} candidates blocked at the pre-grasp, "

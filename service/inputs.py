@@ -15,7 +15,14 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from completion.grid import GRID_SIZE, Intrinsics, VoxelGrid, depth_to_points, indices_to_points
+from completion.grid import (
+    GRID_SIZE,
+    OBSTACLE_PITCH_M,
+    Intrinsics,
+    VoxelGrid,
+    depth_to_points,
+    indices_to_points,
+)
 
 # MAX_COORDINATE_M: the largest |coordinate| (metres) accepted in points, depth and transforms:
 # far beyond any depth camera, small enough that fitting a grid cannot overflow
@@ -113,14 +120,12 @@ def decode_view(
     elif view.obstacles and mask is not None:
         outside = ~mask
     step = thinning_step(depth, mask, max_points)
-    k = view.intrinsics
     if step > 1:  # every step-th pixel along both axes: the same camera at a lower resolution
         depth = depth[::step, ::step].copy()  # copies, so that the full images are freed now
         mask = None if mask is None else mask[::step, ::step].copy()
         outside = None if outside is None else outside[::step, ::step].copy()
     _some_depth(depth, mask, view.depth.encoding)  # on the thinned image: no full-size copies
-    intrinsics = Intrinsics(k.fx / step, k.fy / step, k.cx / step, k.cy / step,
-                            width=depth.shape[1], height=depth.shape[0])
+    intrinsics = scaled(view.intrinsics, step, depth.shape)
     metres = depth.astype(np.float64)
     if depth.dtype == np.uint16:
         metres /= 1000.0
@@ -146,29 +151,35 @@ def _background(metres: np.ndarray, intrinsics: Intrinsics, mask: np.ndarray) ->
     if count < 50:  # too little to tell the table by (service.frames); nothing allocated
         return None
     step = max(1, int(np.ceil(np.sqrt(count / BACKGROUND_POINTS))))
-    sub = Intrinsics(intrinsics.fx / step, intrinsics.fy / step, intrinsics.cx / step,
-                     intrinsics.cy / step, width=metres[::step, ::step].shape[1],
-                     height=metres[::step, ::step].shape[0])
-    points = depth_to_points(metres[::step, ::step], sub, outside[::step, ::step], cleaning=None)
-    return points[np.isfinite(points).all(axis=1)][:BACKGROUND_POINTS]
+    return _every(step, metres, intrinsics, outside, cleaning=None)[:BACKGROUND_POINTS]
 
 
 def _others(metres: np.ndarray, intrinsics: Intrinsics, outside: np.ndarray) -> np.ndarray:
     """The pixels of ``outside`` with a depth, back-projected (cleaned of flying pixels as the
-    object's are) one about every :data:`completion.stream.OBSTACLE_PITCH_M` at their median
+    object's are) one about every :data:`completion.grid.OBSTACLE_PITCH_M` at their median
     depth: as dense as the obstacle voxels they fill, and no denser."""
-    from completion.stream import OBSTACLE_PITCH_M
-
     valid = outside & np.isfinite(metres) & (metres > 0)
     if not valid.any():
         return np.zeros((0, 3))
     spacing = float(np.median(metres[valid])) / intrinsics.fx  # metres between two pixels
-    step = max(1, int(OBSTACLE_PITCH_M / spacing))
-    sub = Intrinsics(intrinsics.fx / step, intrinsics.fy / step, intrinsics.cx / step,
-                     intrinsics.cy / step, width=metres[::step, ::step].shape[1],
-                     height=metres[::step, ::step].shape[0])
-    points = depth_to_points(metres[::step, ::step], sub, valid[::step, ::step])
+    return _every(max(1, int(OBSTACLE_PITCH_M / spacing)), metres, intrinsics, valid)
+
+
+def _every(step: int, metres: np.ndarray, intrinsics: Intrinsics, pixels: np.ndarray,
+           **cleaning) -> np.ndarray:
+    """``pixels`` of every ``step``-th row and column back-projected as the same camera at that
+    lower resolution sees them (:func:`scaled`; ``cleaning``: :func:`depth_to_points`'s)."""
+    thinned = metres[::step, ::step]  # a view: nothing copied
+    points = depth_to_points(thinned, scaled(intrinsics, step, thinned.shape),
+                             pixels[::step, ::step], **cleaning)
     return points[np.isfinite(points).all(axis=1)]
+
+
+def scaled(intrinsics, step: int, shape: tuple[int, int]) -> Intrinsics:
+    """The intrinsics (pixels: fx, fy, cx, cy) of an image thinned to every ``step``-th pixel
+    along both axes, of ``shape`` (H, W) once thinned: the same camera at a lower resolution."""
+    return Intrinsics(intrinsics.fx / step, intrinsics.fy / step, intrinsics.cx / step,
+                      intrinsics.cy / step, width=shape[1], height=shape[0])
 
 
 MILLIMETRES_HINT = "it looks like millimetres: send png16_mm (uint16 millimetres) or divide by 1000"

@@ -22,7 +22,6 @@ import trimesh
 from fastapi import APIRouter, Depends, Request, Response
 from fastapi.responses import FileResponse
 
-from completion.grid import transform_points
 from grasp_client.wire import SupportPlane
 from service.deps import ServicesDep, require_token
 from service.routes import (
@@ -67,9 +66,7 @@ async def get_observed(session_id: PathId, services: ServicesDep) -> ObservedOut
     """The latest view's observed voxel centres and the session's obstacle voxels, in its
     camera frame (the completion's)."""
     snapshot = await services.infer(services.pipeline.snapshot, session_id)
-    obstacles = np.zeros((0, 3))
-    if snapshot.obstacles is not None and len(snapshot.obstacles):
-        obstacles = transform_points(snapshot.obstacles, np.linalg.inv(snapshot.camera_to_world))
+    obstacles = np.zeros((0, 3)) if snapshot.obstacles is None else snapshot.obstacles
     return ObservedOut(
         session_id=session_id,
         views=snapshot.record.views,

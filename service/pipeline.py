@@ -23,6 +23,7 @@ import trimesh
 from completion.grid import VoxelGrid, transform_points
 from completion.mesh import grid_to_mesh
 from completion.stream import Completion, CompletionStream, ViewResult
+from grasp.obstacles import seen_others
 from service.frames import DEFAULT_CHECKS, FrameChecks, Previous, check_view
 from service.inputs import DecodedView, InputError
 from service.store import ConcurrentUpdate, SessionRecord, Store
@@ -58,7 +59,7 @@ class Snapshot:
     camera_to_world: np.ndarray | None  # (4, 4) of the latest view, when given
     observed: np.ndarray  # (n, 3) the latest view's observed voxel centres
     support_plane: np.ndarray | None = None  # (4,) world frame, when the session keeps one
-    obstacles: np.ndarray | None = None  # (k, 3) obstacle voxel centres, world frame
+    obstacles: np.ndarray | None = None  # (k, 3) obstacle voxel centres, the same camera frame
 
 
 class Pipeline:
@@ -217,8 +218,12 @@ class Pipeline:
 
 
 def _snapshot(record: SessionRecord, stream: CompletionStream, completion: Completion) -> Snapshot:
+    obstacles = None  # kept in the world frame: a session with any has camera poses
+    if len(stream.obstacle_keys):
+        obstacles = transform_points(stream.obstacle_points(),
+                                     np.linalg.inv(stream.camera_to_world))
     return Snapshot(record, completion, stream.camera_to_world, stream.observed_points(),
-                    stream.support_plane, stream.obstacle_points())
+                    stream.support_plane, obstacles)
 
 
 def _keep_obstacles(stream: CompletionStream, view: DecodedView) -> None:
@@ -227,8 +232,6 @@ def _keep_obstacles(stream: CompletionStream, view: DecodedView) -> None:
     if (view.others is None or view.camera_to_world is None or stream.support_plane is None
             or not len(view.others) or view.points is None or not len(view.points)):
         return
-    from grasp.obstacles import seen_others
-
     pose = view.camera_to_world
     kept = seen_others(transform_points(view.others, pose), transform_points(view.points, pose),
                        stream.support_plane)

@@ -57,8 +57,9 @@ def plan_grasps(
     """``grasp.planner.plan`` on the mesh (vertices (v, 3), faces (f, 3)); also its seconds.
 
     ``support_plane``: a ``grasp.table.SupportPlane`` in the mesh's frame, or None; ``budget``:
-    candidates autograsped (None: the planner's default); ``obstacles``: obstacle voxel centres
-    (k, 3) in the mesh's frame (:class:`grasp.obstacles.Obstacles`), or None."""
+    candidates autograsped (None: the planner's default); ``obstacles``: the session's obstacle
+    voxels' centres (k, 3) moved into the mesh's frame (:class:`grasp.obstacles.Obstacles` of
+    the session's pitch, :data:`completion.grid.OBSTACLE_PITCH_M`), or None."""
     import trimesh
 
     from grasp.obstacles import Obstacles

@@ -16,7 +16,6 @@ from typing import Annotated
 import numpy as np
 from fastapi import APIRouter, Depends, Header, Path, Query, Request, Response, status
 
-from completion.grid import transform_points
 from completion.mesh import MeshFormat, export_mesh
 from completion.stream import stored_support_plane
 from grasp.autograsp import pregrasp_pose
@@ -210,9 +209,6 @@ async def plan_session(
     if snapshot.support_plane is not None:  # into the latest camera frame
         kept = snapshot.support_plane
         plane = SupportPlane(kept[:3], float(kept[3])).transformed(snapshot.camera_to_world)
-    obstacles = None  # the session's, into the latest camera frame
-    if snapshot.obstacles is not None and len(snapshot.obstacles):
-        obstacles = transform_points(snapshot.obstacles, np.linalg.inv(snapshot.camera_to_world))
     problem = too_large(mesh)
     if problem is not None:  # nothing the hand can close on: say so, plan nothing
         timing |= {"planning": 0.0, "waiting": 0.0, "total": (time.perf_counter() - start) * 1e3}
@@ -221,7 +217,8 @@ async def plan_session(
         return out, mesh, snapshot
     results, seconds, cached = await services.planner.plan(
         mesh.vertices, mesh.faces, n_candidates=n, seed=s.plan_seed, top_k=top_k,
-        support_plane=plane, obstacles=obstacles, verify=tries, gone=request.is_disconnected,
+        support_plane=plane, obstacles=snapshot.obstacles, verify=tries,
+        gone=request.is_disconnected,
     )
     await services.io(services.pipeline.store.get, session_id)  # deleted while it was planned: 404
     total = (time.perf_counter() - start) * 1e3

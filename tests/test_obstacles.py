@@ -36,8 +36,8 @@ def neighbour():
 def test_obstacle_points_snap_to_voxels_so_views_of_one_surface_add_nothing_twice():
     rng = np.random.default_rng(0)
     points = rng.uniform(0.0, 0.05, size=(2000, 3))
-    once = Obstacles(points, pitch=0.01)
-    twice = Obstacles(np.concatenate([points, points + 1e-4]), pitch=0.01)
+    once = Obstacles.from_points(points, pitch=0.01)
+    twice = Obstacles.from_points(np.concatenate([points, points + 1e-4]), pitch=0.01)
     assert len(once) <= 125 and len(twice) <= len(once) + 25  # a 5 cm cube of 1 cm voxels
     assert np.allclose(np.sort(Obstacles(once.centres, 0.01).centres, axis=0),
                        np.sort(once.centres, axis=0))
@@ -45,9 +45,9 @@ def test_obstacle_points_snap_to_voxels_so_views_of_one_surface_add_nothing_twic
                                          [0, 0, 0, 1.0]]))
     assert np.isclose(shifted.centres[:, 0].min(), once.centres[:, 0].min() + 0.1)
     with pytest.raises(ValueError, match="pitch"):
-        Obstacles(points, pitch=0.0)
+        Obstacles.from_points(points, pitch=0.0)
     with pytest.raises(ValueError, match="finite"):
-        Obstacles(np.array([[0.0, np.nan, 0.0]]))
+        Obstacles.from_points(np.array([[0.0, np.nan, 0.0]]))
 
 
 def test_the_sweep_finds_obstacles_on_the_way_in_and_while_closing(target, neighbour):

@@ -198,7 +198,7 @@ def seen_obstacles(scene: ClutterScene, views: int = VIEWS) -> Obstacles:
         target = G.transform_points(G.depth_to_points(scene.depth[t], scene.intrinsics,
                                                       scene.mask[t]), scene.cameras[t])
         kept.append(seen_others(others, target, TABLE))
-    return Obstacles(np.concatenate(kept) if kept else np.zeros((0, 3)))
+    return Obstacles.from_points(np.concatenate(kept) if kept else np.zeros((0, 3)))
 
 
 def disturbed(result) -> str | None:
@@ -222,13 +222,14 @@ def run_scene(scene: ClutterScene, models: dict, rows, *, candidates: int, seed:
 
     table = SupportPlane(TABLE[:3], float(TABLE[3]))
     target_scene = _as_benchmark_scene(scene)
-    out = {}
+    out, completed = {}, None
     for row in rows:
         if row == "true_meshes":
             mesh, camera = scene.target, np.eye(4)
             obstacles = Obstacles.from_meshes(scene.neighbours)
-        else:
-            mesh, camera = completion_mesh(target_scene, "mvp", VIEWS, models)
+        else:  # both MVP rows plan on the one completion
+            completed = completed or completion_mesh(target_scene, "mvp", VIEWS, models)
+            mesh, camera = completed
             obstacles = (seen_obstacles(scene).transformed(np.linalg.inv(camera))
                          if row == "mvp_4views_obstacles" else None)
         if mesh is None:

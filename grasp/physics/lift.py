@@ -10,7 +10,7 @@ import numpy as np
 import trimesh
 from scipy.spatial.transform import Rotation
 
-from grasp.autograsp import GraspResult, pregrasp_pose, preshaped
+from grasp.autograsp import GraspResult, pregrasp_pose
 from grasp.collision import check_mesh, check_pose
 from grasp.physics.settings import (
     APPROACHES,
@@ -25,6 +25,7 @@ from grasp.physics.world import DynamicWorld
 from grasp.quality import MU_RUBBER
 from grasp.table import SupportPlane, to_upright
 from hands.barrett import BH8_282, BarrettParams
+from hands.barrett.kinematics import joints_from_dofs
 
 
 def _smooth(t: float) -> float:
@@ -161,7 +162,8 @@ def lift_test(
     directions = np.random.default_rng(seed).normal(size=(s.shake_count, 3))
     directions /= np.linalg.norm(directions, axis=1, keepdims=True)
     spread = float(grasp.dofs_deg.spread)
-    open_joints = preshaped(spread, grasp.preshape_deg, params)  # the hand as it approaches
+    # the hand as it approaches: the spread set, the fingers at their pre-shape
+    open_joints = joints_from_dofs([spread, *[grasp.preshape_deg] * 3], params=params).tolist()
     backoff = pregrasp_pose(palm, s.pregrasp_backoff)[:3, 3] - palm[:3, 3]  # (3,) world
 
     with DynamicWorld(
