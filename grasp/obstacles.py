@@ -16,9 +16,12 @@ The hand keeps clear of them while it moves as the planner plans it (:func:`swee
    its centre's motion and grown by what its turn adds, so that nothing between is missed.
 
 Each voxel is a cube, so a box reaches it when the box grown by half the voxel's diagonal holds
-its centre (conservative by at most that much). A grasp whose hand reaches an obstacle is
-refused by the planner with the reason (:func:`hit_reason`). The lift that follows is not
-checked: it moves the hand away from the table, away from neighbours standing on it.
+its centre (conservative by at most that much). Every test is one ball query of the voxels' tree
+for all the boxes' swept spheres, then the exact slab test of the pairs it returns
+(:func:`_sweeps`); :func:`hand_clear` checks many pre-grasps at once that way. A grasp whose
+hand reaches an obstacle is refused by the planner with the reason (:func:`hit_reason`). The
+lift that follows is not checked: it moves the hand away from the table, away from neighbours
+standing on it.
 
 This module must not import torch (docs/design.md §2).
 """
@@ -37,8 +40,8 @@ from completion.grid import OBSTACLE_PITCH_M, voxel_keys
 from hands.barrett import BH8_282, FINGERS, LINK_NAMES, BarrettParams, HandKinematics
 from hands.barrett.kinematics import joints_from_dofs
 
-__all__ = ["CLOSING_STEP_DEG", "DEFAULT_PITCH_M", "Hit", "Obstacles", "hit_reason", "seen_others",
-           "sweep_hit"]
+__all__ = ["CLOSING_STEP_DEG", "DEFAULT_PITCH_M", "Hit", "Obstacles", "hand_clear", "hit_reason",
+           "seen_others", "sweep_hit"]
 
 #: Side of an obstacle voxel (metres): fine beside a 2-10 cm gap, bounded in count; the one a
 #: session keeps its obstacles at.
@@ -143,23 +146,38 @@ class Hit:
     point: np.ndarray
 
 
-def _box_sweep_hits(points: np.ndarray, pose: np.ndarray, half: np.ndarray,
-                    move: np.ndarray) -> np.ndarray:
-    """Which ``points`` the box (``pose``: box→world, ``half``: half extents) reaches while it
-    translates by ``move`` (world): slab intervals of the motion parameter s in [0, 1]."""
-    rot, centre = pose[:3, :3], pose[:3, 3]
-    q = (points - centre) @ rot  # the points in the box frame
-    u = rot.T @ move
-    lo, hi = np.zeros(len(points)), np.ones(len(points))
-    for axis in range(3):
-        if abs(u[axis]) < 1e-12:
-            inside = np.abs(q[:, axis]) <= half[axis]
-            lo = np.where(inside, lo, 2.0)
-            continue
-        a = (q[:, axis] - half[axis]) / u[axis]
-        b = (q[:, axis] + half[axis]) / u[axis]
-        lo, hi = np.maximum(lo, np.minimum(a, b)), np.minimum(hi, np.maximum(a, b))
-    return lo <= hi
+def _box_sweep_hits(points: np.ndarray, poses: np.ndarray, halves: np.ndarray,
+                    moves: np.ndarray) -> np.ndarray:
+    """(P,) bool: whether each box (``poses`` (P, 4, 4) box→world, ``halves`` (P, 3) half
+    extents) reaches its point of (P, 3) ``points`` while it translates by its (P, 3) ``moves``
+    (world): the slab intervals of the motion parameter s in [0, 1] overlap."""
+    rot = poses[:, :3, :3]
+    q = np.einsum("pi,pij->pj", points - poses[:, :3, 3], rot)  # the points in the box frames
+    u = np.einsum("pij,pi->pj", rot, moves)
+    still = np.abs(u) < 1e-12
+    with np.errstate(divide="ignore", invalid="ignore"):
+        a, b = (q - halves) / u, (q + halves) / u
+    lo = np.where(still, np.where(np.abs(q) <= halves, 0.0, 2.0), np.minimum(a, b))
+    hi = np.where(still, 1.0, np.maximum(a, b))
+    return np.maximum(lo.max(axis=1), 0.0) <= np.minimum(hi.min(axis=1), 1.0)
+
+
+def _sweeps(obstacles: Obstacles, poses: np.ndarray, halves: np.ndarray, moves: np.ndarray):
+    """Every (box, voxel) pair where one of (B, 4, 4) boxes (``halves`` (B, 3), grown by the
+    voxels' :attr:`~Obstacles.reach`), translating by its (B, 3) move, reaches the voxel's
+    centre: (box indices, voxel indices), ordered by box, then voxel. One ball query of the
+    voxel tree for all the boxes' swept spheres, then the exact test of those pairs."""
+    halves = halves + obstacles.reach
+    centres = poses[:, :3, 3] + 0.5 * moves
+    radius = np.linalg.norm(halves, axis=1) + 0.5 * np.linalg.norm(moves, axis=1)
+    lists = obstacles._tree.query_ball_point(centres, radius, return_sorted=True)
+    counts = np.fromiter((len(x) for x in lists), dtype=np.intp, count=len(lists))
+    if not counts.sum():
+        return np.zeros(0, dtype=np.intp), np.zeros(0, dtype=np.intp)
+    box = np.repeat(np.arange(len(poses)), counts)
+    voxel = np.concatenate([x for x in lists if x]).astype(np.intp)
+    hit = _box_sweep_hits(obstacles.centres[voxel], poses[box], halves[box], moves[box])
+    return box[hit], voxel[hit]
 
 
 #: What growing a finger link's box for a voxel's size and its turn between two closing samples
@@ -195,10 +213,13 @@ class _Hand:
             for f in FINGERS for s in np.radians([0.0, 90.0, 180.0]))
 
     def world_boxes(self, palm: np.ndarray, joints_rad: np.ndarray):
-        """(link, box→world, half extents) of every primitive."""
-        for link, pose in self.kinematics.link_poses(joints_rad).items():
-            for local, half in self.boxes[link]:
-                yield link, palm @ pose @ local, half
+        """Every primitive's box at these joints: (links, (B, 4, 4) box→world, (B, 3) half
+        extents); ``palm`` (4, 4) or (k, 4, 4), the boxes then (k, B, 4, 4)."""
+        poses = self.kinematics.link_poses(joints_rad)
+        links = [link for link in poses for _ in self.boxes[link]]
+        local = np.stack([poses[link] @ pose for link in poses for pose, _ in self.boxes[link]])
+        halves = np.stack([half for link in poses for _, half in self.boxes[link]])
+        return links, np.asarray(palm)[..., None, :, :] @ local, halves
 
 
 _HANDS: dict[BarrettParams, _Hand] = {}
@@ -210,28 +231,14 @@ def _hand(params: BarrettParams) -> _Hand:
     return _HANDS[params]
 
 
-def _first_hit(obstacles: Obstacles, boxes, move: np.ndarray, grow: float,
-               phase: str) -> Hit | None:
-    """The first of ``boxes`` (link, box→world, half extents) that reaches a voxel while moving
-    by ``move``: one look-up of the voxels near them all, then each box's own."""
-    boxes = list(boxes)
-    if not boxes:
+def _first_hit(obstacles: Obstacles, links: Sequence[str], poses: np.ndarray,
+               halves: np.ndarray, move: np.ndarray, phase: str) -> Hit | None:
+    """The first of the boxes (``links``, (B, 4, 4) ``poses``, (B, 3) ``halves``) that reaches a
+    voxel while translating by ``move``."""
+    box, voxel = _sweeps(obstacles, poses, halves, np.broadcast_to(move, (len(poses), 3)))
+    if len(box) == 0:
         return None
-    centres = np.array([pose[:3, 3] for _, pose, _ in boxes]) + 0.5 * move
-    halves = [half + obstacles.reach + grow for _, _, half in boxes]
-    reach = np.array([np.linalg.norm(h) for h in halves]) + 0.5 * float(np.linalg.norm(move))
-    middle = 0.5 * (centres.min(axis=0) + centres.max(axis=0))
-    near = obstacles.near(middle, float((np.linalg.norm(centres - middle, axis=1) + reach).max()))
-    if len(near) == 0:
-        return None
-    for (link, pose, _), half, centre, r in zip(boxes, halves, centres, reach, strict=True):
-        mine = near[np.linalg.norm(near - centre, axis=1) <= r]
-        if len(mine) == 0:
-            continue
-        hits = _box_sweep_hits(mine, pose, half, move)
-        if hits.any():
-            return Hit(link, phase, mine[int(np.argmax(hits))])
-    return None
+    return Hit(links[box[0]], phase, obstacles.centres[voxel[0]])
 
 
 def sweep_hit(
@@ -259,15 +266,17 @@ def sweep_hit(
     opened = np.radians(joints_from_dofs([spread, *[preshape_deg] * 3], params=params))
     start, stop = np.asarray(start_pose, float), np.asarray(palm_pose, float)
     end = stop if end_palm_pose is None else np.asarray(end_palm_pose, float)
-    hit = _first_hit(obstacles, hand.world_boxes(start, opened), stop[:3, 3] - start[:3, 3], 0.0,
+    hit = _first_hit(obstacles, *hand.world_boxes(start, opened), stop[:3, 3] - start[:3, 3],
                      "approach")
     if hit is not None:
         return hit
     if np.allclose(closed, opened) and np.allclose(end, stop):
         return None  # nothing moves after the approach
     # the palm and the knuckles (the spread is set) move only with a pinch's rise: swept along it
-    fixed = [box for box in hand.world_boxes(stop, opened) if not box[0].endswith(FINGER_LINKS)]
-    hit = _first_hit(obstacles, fixed, end[:3, 3] - stop[:3, 3], 0.0, "closing")
+    links, poses, halves = hand.world_boxes(stop, opened)
+    fixed = [i for i, link in enumerate(links) if not link.endswith(FINGER_LINKS)]
+    hit = _first_hit(obstacles, [links[i] for i in fixed], poses[fixed], halves[fixed],
+                     end[:3, 3] - stop[:3, 3], "closing")
     if hit is not None:
         return hit
     travel = float(np.max(np.abs(np.degrees(closed - opened))))
@@ -276,46 +285,49 @@ def sweep_hit(
     # by what its turn adds: a link turns by at most its joints' change (the distal's
     # orientation is J2 + J3), its corners by its half diagonal times that
     turn = 2.0 * math.radians(travel) / steps
-    palms = [stop.copy() for _ in range(steps + 1)]
-    for k, palm in enumerate(palms):  # a pinch's palm rises while the fingers close
-        palm[:3, 3] = (1.0 - k / steps) * stop[:3, 3] + (k / steps) * end[:3, 3]
-    rise = float(np.linalg.norm(end[:3, 3] - stop[:3, 3]))
-    reach = hand.finger_reach + GROWTH_MARGIN_M  # a finger's boxes, grown, from its knuckle
-    hand_near = obstacles.near(0.5 * (stop[:3, 3] + end[:3, 3]),  # within any finger's reach
-                               0.5 * rise + hand.knuckle_reach + reach)
-    if len(hand_near) == 0:
-        return None
+    s = np.linspace(0.0, 1.0, steps + 1)
+    palms = np.tile(stop, (steps + 1, 1, 1))  # a pinch's palm rises while the fingers close
+    palms[:, :3, 3] = (1.0 - s)[:, None] * stop[:3, 3] + s[:, None] * end[:3, 3]
+    links, poses, halves = [], [], []  # every finger box's steps, in order
     for finger, (i2, i3) in zip(FINGERS, _FINGER_JOINTS, strict=True):
         knuckle = hand.kinematics.knuckle_pose(finger, float(closed[0]))
-        ends = [palms[0] @ knuckle, palms[-1] @ knuckle]
-        around = 0.5 * (ends[0][:3, 3] + ends[1][:3, 3])
-        span = 0.5 * float(np.linalg.norm(ends[1][:3, 3] - ends[0][:3, 3]))
-        near = hand_near[np.linalg.norm(hand_near - around, axis=1) <= span + reach]
-        if len(near) == 0:
-            continue  # nothing within this finger's reach: it closes clear
-        samples = []
-        for k in range(steps + 1):
-            s = k / steps
-            j2, j3 = (1 - s) * opened[i2] + s * closed[i2], (1 - s) * opened[i3] + s * closed[i3]
-            poses = hand.kinematics.finger_poses(palms[k] @ knuckle, finger, j2, j3)
-            samples.append([(link, pose @ local, half)
-                            for link, pose in zip((f"{finger}_prox", f"{finger}_dist"), poses,
-                                                  strict=True)
-                            for local, half in hand.boxes[link]])
-        for j, (link, _, half) in enumerate(samples[0]):
-            grown = half + obstacles.reach + float(np.linalg.norm(half)) * turn
-            centres = np.array([boxes[j][1][:3, 3] for boxes in samples])
-            middle = 0.5 * (centres.min(axis=0) + centres.max(axis=0))
-            radius = float(np.linalg.norm(centres - middle, axis=1).max() + np.linalg.norm(grown))
-            mine = near[np.linalg.norm(near - middle, axis=1) <= radius]  # this box's reach
-            if len(mine) == 0:
-                continue
-            for k in range(steps):
-                pose = samples[k][j][1]
-                hits = _box_sweep_hits(mine, pose, grown, centres[k + 1] - centres[k])
-                if hits.any():
-                    return Hit(link, "closing", mine[int(np.argmax(hits))])
-    return None
+        paths = hand.kinematics.finger_path(palms @ knuckle, finger,
+                                            (1 - s) * opened[i2] + s * closed[i2],
+                                            (1 - s) * opened[i3] + s * closed[i3])
+        for link, path in zip((f"{finger}_prox", f"{finger}_dist"), paths, strict=True):
+            for local, half in hand.boxes[link]:
+                links.append(link)
+                poses.append(path @ local)  # (steps + 1, 4, 4)
+                halves.append(half + float(np.linalg.norm(half)) * turn)
+    poses = np.stack(poses)
+    moves = np.diff(poses[:, :, :3, 3], axis=1)  # (boxes, steps, 3)
+    box, voxel = _sweeps(obstacles, poses[:, :-1].reshape(-1, 4, 4),
+                         np.repeat(np.stack(halves), steps, axis=0), moves.reshape(-1, 3))
+    if len(box) == 0:
+        return None
+    return Hit(links[box[0] // steps], "closing", obstacles.centres[voxel[0]])
+
+
+def hand_clear(obstacles: Obstacles | None, palms: np.ndarray, spreads_deg: np.ndarray,
+               preshape_deg: float = 0.0, params: BarrettParams = BH8_282) -> np.ndarray:
+    """(k,) bool: whether the hand standing still at each of (k, 4, 4) palm poses, at (k,)
+    spreads and its fingers at ``preshape_deg``, reaches no obstacle (:func:`sweep_hit` of a
+    hand that does not move, for many poses at once)."""
+    palms = np.asarray(palms, dtype=np.float64).reshape(-1, 4, 4)
+    spreads = np.asarray(spreads_deg, dtype=np.float64).reshape(-1)
+    clear = np.ones(len(palms), dtype=bool)
+    if obstacles is None or len(obstacles) == 0 or len(palms) == 0:
+        return clear
+    hand = _hand(params)
+    for spread in np.unique(spreads):
+        which = np.flatnonzero(spreads == spread)
+        joints = np.radians(joints_from_dofs([spread, *[preshape_deg] * 3], params=params))
+        _, poses, halves = hand.world_boxes(palms[which], joints)  # (k, B, 4, 4)
+        count = halves.shape[0]
+        box, _ = _sweeps(obstacles, poses.reshape(-1, 4, 4), np.tile(halves, (len(which), 1)),
+                         np.zeros((len(which) * count, 3)))
+        clear[which[np.unique(box // count)]] = False
+    return clear
 
 
 def hit_reason(hit: Hit, target: trimesh.Trimesh) -> str:

@@ -45,14 +45,13 @@ from grasp.candidates import (
     table_candidates,
 )
 from grasp.collision import CollisionScene, check_mesh
-from grasp.obstacles import Obstacles, hit_reason, sweep_hit
+from grasp.obstacles import Obstacles, hand_clear, hit_reason, sweep_hit
 from grasp.pinch import TABLE_PINCH, pinch_failure
 from grasp.screen import Screen, fingertip_span
 from grasp.table import SupportPlane, crosses
 from grasp.verify import DEFAULT_VERIFY, VerifySettings, describe
 from grasp.verify import verify as verify_grasps
 from hands.barrett import JOINT_NAMES
-from hands.barrett.kinematics import joints_from_dofs
 
 #: Largest object the planner tries, as its bounding-box diagonal (metres). The open BH8-282
 #: spans about 0.3 m, so bigger shapes come back as failures (no force closure); one several
@@ -188,7 +187,8 @@ def plan(
     obstacles : Obstacles or None
         What the hand must not touch besides the object and the table (the neighbours,
         :mod:`grasp.obstacles`), in the mesh's frame: a candidate whose open hand meets one at
-        the pre-grasp is not tried, and a grasp whose approach or closing would is refused with
+        the pre-grasp is tried pre-shaped or not at all, the screen orders last the approaches
+        it predicts to meet one, and a grasp whose approach or closing would is refused with
         the reason, the screen's next candidate autograsped in its place (the budget counts
         the grasps the obstacles allow). None or empty: exactly the plan without.
     timings : dict or None
@@ -231,13 +231,13 @@ def plan(
         candidates = table_candidates(scene.mesh, support_plane, travel=travel, **options)
     blocked = []
     if obstacles is not None and len(obstacles):  # the open hand at the pre-grasp; else shaped
-        blocked = [_clear_at_start(obstacles, c) for c in candidates]
+        blocked = _clear_at_start(obstacles, candidates)
         kept = [c for c in blocked if c is not None]
         # (every one blocked: all are tried, and refused with the reason)
         candidates = kept if kept else candidates
     lap("setup")
     screened = budget is not None and budget < len(candidates)
-    ranked_order = (screen_order(scene, candidates, travel) if screened
+    ranked_order = (screen_order(scene, candidates, travel, obstacles) if screened
                     else list(range(len(candidates))))
     first = sorted(ranked_order[:budget] if screened else ranked_order)  # candidate order: ties
     batch, rest = [candidates[i] for i in first], ranked_order[budget:] if screened else []
@@ -292,17 +292,16 @@ def plan(
     return best
 
 
-def _clear_at_start(obstacles: Obstacles, c: Candidate) -> Candidate | None:
-    """``c`` if its open hand at the pre-grasp meets no obstacle; else ``c`` pre-shaped
-    (:data:`CLUTTER_PRESHAPE_DEG`) if that one meets none; else None."""
-    for shaped in (c, dataclasses.replace(c, preshape_deg=CLUTTER_PRESHAPE_DEG)):
-        joints = joints_from_dofs([c.spread_deg, *[shaped.preshape_deg] * 3])
-        if sweep_hit(obstacles, c.palm_pose, c.palm_pose, joints,
-                     preshape_deg=shaped.preshape_deg) is None:
-            return shaped
-        if c.source == TABLE_PINCH:
-            return None
-    return None
+def _clear_at_start(obstacles: Obstacles, candidates: Sequence[Candidate]) -> list:
+    """Per candidate: itself if its open hand at the pre-grasp meets no obstacle; else itself
+    pre-shaped (:data:`CLUTTER_PRESHAPE_DEG`) if that one meets none (a table pinch is never
+    pre-shaped); else None."""
+    palms = np.stack([c.palm_pose for c in candidates])
+    spreads = np.array([c.spread_deg for c in candidates])
+    opened = hand_clear(obstacles, palms, spreads)
+    shaped = hand_clear(obstacles, palms, spreads, CLUTTER_PRESHAPE_DEG)
+    return [c if opened[i] else dataclasses.replace(c, preshape_deg=CLUTTER_PRESHAPE_DEG)
+            if shaped[i] and c.source != TABLE_PINCH else None for i, c in enumerate(candidates)]
 
 
 def _refused(result: GraspResult, reason: str) -> GraspResult:
@@ -321,7 +320,8 @@ def obstacle_failure(blocked: Sequence, refused: int) -> str | None:
             f"{refused} grasps refused")
 
 
-def screen_order(scene: CollisionScene, candidates: Sequence[Candidate], travel: float):
+def screen_order(scene: CollisionScene, candidates: Sequence[Candidate], travel: float,
+                 obstacles: Obstacles | None = None):
     """Candidate indices, most promising first: on a table, the fingertip grasps of an object
     lower than :data:`PINCH_FIRST_HEIGHT_M` (at most four; the screen cannot see what their
     closing tips meet, and on a flat object they are often the only force closure), then by the
@@ -336,10 +336,10 @@ def screen_order(scene: CollisionScene, candidates: Sequence[Candidate], travel:
     spreads = np.array([c.spread_deg for c in candidates])
     if any(c.travel is not None for c in candidates):
         travel = np.array([travel if c.travel is None else c.travel for c in candidates])
-    screen = Screen(
-        scene.mesh, spacing=SCREEN_SPACING_M, nearest=True, support_plane=scene.support_plane
-    )
-    touches, palm, depth = screen.predict(palms, spreads, travel, scene.center)
+    screen = Screen(scene.mesh, spacing=SCREEN_SPACING_M, nearest=True,
+                    support_plane=scene.support_plane, obstacles=obstacles)
+    shapes = np.array([c.preshape_deg for c in candidates])
+    touches, palm, depth = screen.predict(palms, spreads, travel, scene.center, shapes)
     pinch = np.array([c.source in ("pinch", TABLE_PINCH) for c in candidates])
     touches |= pinch  # a fingertip grasp stops above a low object: its fingers meet it
     plane = scene.support_plane

@@ -146,3 +146,48 @@ def test_among_neighbours_the_planner_preshapes_the_hand_where_the_open_one_woul
     assert result.success and result.neighbour_moved < 0.005
     prox = result.joints_deg[[1, 4, 6]]  # f1, f2, f3 proximal joints, executed
     assert (prox >= CLUTTER_PRESHAPE_DEG - 2.0).all()
+
+
+def test_the_batched_pregrasp_check_agrees_with_the_sweep_of_a_hand_standing_still(target,
+                                                                                   neighbour):
+    """:func:`hand_clear` (every candidate at once, what the planner checks its pre-grasps with)
+    gives what :func:`sweep_hit` gives for a hand that does not move, open and pre-shaped."""
+    from grasp.candidates import table_candidates
+    from grasp.obstacles import hand_clear
+    from hands.barrett.kinematics import joints_from_dofs
+
+    obstacles = Obstacles.from_meshes([neighbour, standing_box((0.05, 0.2, 0.1), (-0.1, 0.0))])
+    candidates = table_candidates(target, TABLE, travel=0.4, n_candidates=64, seed=0)
+    palms = np.stack([c.palm_pose for c in candidates])
+    spreads = np.array([c.spread_deg for c in candidates])
+    for shape in (0.0, 45.0):
+        batched = hand_clear(obstacles, palms, spreads, shape)
+        one_by_one = [sweep_hit(obstacles, c.palm_pose, c.palm_pose,
+                                joints_from_dofs([c.spread_deg, *[shape] * 3]),
+                                preshape_deg=shape) is None for c in candidates]
+        assert batched.tolist() == one_by_one
+        assert 0 < batched.sum() < len(candidates)  # the scene blocks some, not all
+    assert hand_clear(None, palms, spreads).all()
+
+
+def test_the_screen_sees_obstacles_an_approach_meets_before_the_object(target):
+    """Among obstacles the screen's approach stops at one in the way, which it does not count as
+    touching the object (the planner autograsps those last); its field never overstates the
+    distance to a voxel's cube."""
+    from grasp.screen import DistanceField, Screen
+
+    down = np.eye(4)
+    down[:3, :3] = [[1, 0, 0], [0, -1, 0], [0, 0, -1]]  # palm +z pointing down
+    down[:3, 3] = [0.0, 0.0, 0.35]
+    lid = standing_box((0.3, 0.3, 0.02), (0.0, 0.0))
+    lid.apply_translation([0, 0, 0.2])  # a shelf between the hand and the target's top
+    obstacles = Obstacles.from_meshes([lid])
+    args = (down[None], np.zeros(1), 0.4, np.array([0.0, 0.0, 0.06]))
+    touches, _, _ = Screen(target, support_plane=TABLE).predict(*args)
+    assert touches[0]
+    touches, _, depth = Screen(target, support_plane=TABLE, obstacles=obstacles).predict(*args)
+    assert not touches[0] and depth[0] > 0.1  # stopped above the shelf, far from the target
+    field = DistanceField.of_cubes(obstacles.centres, obstacles.reach)
+    points = np.random.default_rng(0).uniform([-0.3, -0.3, 0.0], [0.3, 0.3, 0.4], (2000, 3))
+    exact = np.linalg.norm(points[:, None] - obstacles.centres[None], axis=2).min(axis=1)
+    assert (field(points, nearest=True) <= exact - obstacles.reach).all()  # a cube: within reach

@@ -81,6 +81,16 @@ def axis_rotation(axis: np.ndarray, angle: float) -> np.ndarray:
     return rotation_about(axis)(angle)
 
 
+def axis_rotations(axis: np.ndarray, angles: np.ndarray) -> np.ndarray:
+    """(S, 4, 4) rotations by each of ``angles`` (radians) about the unit ``axis`` (Rodrigues)."""
+    x, y, z = np.asarray(axis, dtype=np.float64)
+    cross = np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
+    angles = np.asarray(angles, dtype=np.float64).reshape(-1, 1, 1)
+    out = np.tile(np.eye(4), (len(angles), 1, 1))
+    out[:, :3, :3] += np.sin(angles) * cross + (1.0 - np.cos(angles)) * (cross @ cross)
+    return out
+
+
 def rotation_about(axis: np.ndarray) -> Callable[[float], np.ndarray]:
     """A fast ``angle -> (4, 4)`` rotation about a coordinate axis (±x, ±y or ±z)."""
     axis = np.asarray(axis, dtype=np.float64)
@@ -300,6 +310,15 @@ class HandKinematics:
         prox = knuckle @ self._joint_by_name[j2].origin @ self._rotation[j2](prox_rad)
         dist = prox @ self._joint_by_name[j3].origin @ self._rotation[j3](dist_rad)
         return prox, dist
+
+    def finger_path(
+        self, knuckles: np.ndarray, finger: str, prox_rad: np.ndarray, dist_rad: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`finger_poses` for many configurations at once: (S, 4, 4) knuckle frames and
+        (S,) angles give the (S, 4, 4) ``fN_prox`` and ``fN_dist`` frames."""
+        j2, j3 = (self._joint_by_name[f"{finger}_{part}"] for part in ("prox", "dist"))
+        prox = knuckles @ j2.origin @ axis_rotations(j2.axis, prox_rad)
+        return prox, prox @ j3.origin @ axis_rotations(j3.axis, dist_rad)
 
     def link_poses(self, joints_rad: Sequence[float]) -> dict[str, np.ndarray]:
         """Every link frame in the palm frame.
