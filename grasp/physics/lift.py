@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable, Sequence
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -143,134 +144,194 @@ def lift_test(
         raise ValueError(f"lift must be a finite distance >= 0 (metres), got {lift}")
     if approach not in APPROACHES:
         raise ValueError(f"approach must be one of {APPROACHES}, got {approach!r}")
-    s = settings
-    palm = check_pose(grasp.palm_pose)
-    if support_plane is not None:  # simulate in the plane's upright frame (z = n·x + d)
-        upright = to_upright(support_plane)
-        if not np.array_equal(upright, np.eye(4)):  # the plane z = 0 keeps the mesh's bytes
-            mesh = mesh.copy().apply_transform(upright)
-            neighbours = [m.copy().apply_transform(upright) for m in neighbours]
-            palm = upright @ palm
-        gap = float(mesh.bounds[0, 2])
-        if abs(gap) > s.plane_tolerance:
-            where = "above" if gap > 0 else "below"
-            raise ValueError(f"the object does not rest on the support plane: its lowest point "
-                             f"is {100 * abs(gap):.1f} cm {where} it (at most "
-                             f"{100 * s.plane_tolerance:.0f} cm); is the plane in the mesh's "
-                             "frame?")
-    table = support_plane is not None
-    directions = np.random.default_rng(seed).normal(size=(s.shake_count, 3))
+    mesh, neighbours, palm = _upright(mesh, neighbours, check_pose(grasp.palm_pose),
+                                      support_plane, settings)
+    on_table = support_plane is not None
+    directions = np.random.default_rng(seed).normal(size=(settings.shake_count, 3))
     directions /= np.linalg.norm(directions, axis=1, keepdims=True)
-    spread = float(grasp.dofs_deg.spread)
-    # the hand as it approaches: the spread set, the fingers at their pre-shape
-    open_joints = joints_from_dofs([spread, *[grasp.preshape_deg] * 3], params=params).tolist()
-    backoff = pregrasp_pose(palm, s.pregrasp_backoff)[:3, 3] - palm[:3, 3]  # (3,) world
-
     with DynamicWorld(
         mesh,
         friction=friction,
         density=density,
-        table_top=float(mesh.bounds[0, 2]) if table else None,
+        table_top=float(mesh.bounds[0, 2]) if on_table else None,
         neighbours=neighbours,
-        settings=s,
+        settings=settings,
         params=params,
         cache_dir=cache_dir,
     ) as world:
-        world.gravity(table)
-        if not table:
-            world.hold_object(s.support_factor * world.mass * GRAVITY)
-        world.place_hand(palm, open_joints, offset=backoff)
-        fingers = world.fingers(grasp.preshape_deg)
+        world.gravity(on_table)
+        if not on_table:
+            world.hold_object(settings.support_factor * world.mass * GRAVITY)
+        hand = _Hand(world, grasp, palm, settings, params)
         neighbours_at = world.neighbour_poses()
-        # approach from the pre-grasp pose, hand open
-        guarded = approach == "guarded"
-        if not guarded or grasp.approach_stop != "contact":
-            # to the planned palm pose, smooth start and stop
+        travel = hand.approach(guarded=approach == "guarded")
+        closed = hand.close()
+        world.hold_object(None)  # load: gravity on, support gone
+        world.gravity(True)
+        held = hand.lift_and_shake(_schedule(lift, shake, directions, settings), closed)
+        shifted, tilted = _disturbance(neighbours_at, world.neighbour_poses())
+    return _judged(held, closed, shake, world.mass, travel, shifted, tilted)
+
+
+def _upright(mesh: trimesh.Trimesh, neighbours: Sequence[trimesh.Trimesh], palm: np.ndarray,
+             plane: SupportPlane | None, s: LiftSettings):
+    """The objects and the palm pose in the plane's upright frame (z = n·x + d; the plane z = 0
+    keeps the meshes' bytes), the object checked to rest on it; unchanged without a plane."""
+    if plane is None:
+        return mesh, neighbours, palm
+    upright = to_upright(plane)
+    if not np.array_equal(upright, np.eye(4)):
+        mesh = mesh.copy().apply_transform(upright)
+        neighbours = [m.copy().apply_transform(upright) for m in neighbours]
+        palm = upright @ palm
+    gap = float(mesh.bounds[0, 2])
+    if abs(gap) > s.plane_tolerance:
+        where = "above" if gap > 0 else "below"
+        raise ValueError(f"the object does not rest on the support plane: its lowest point "
+                         f"is {100 * abs(gap):.1f} cm {where} it (at most "
+                         f"{100 * s.plane_tolerance:.0f} cm); is the plane in the mesh's "
+                         "frame?")
+    return mesh, neighbours, palm
+
+
+@dataclass
+class _Closed:
+    """What the closing left: the joints, the hand's rise, the contacts, each finger's stop, the
+    object's pose in the palm frame then (the reference of the slip)."""
+
+    joints_deg: np.ndarray
+    rose: float
+    contacts: int
+    stops: tuple
+    position: np.ndarray
+    rotation: np.ndarray
+
+
+@dataclass
+class _Held:
+    """What the loaded phases measured: the object's last pose in the palm frame, the largest
+    slip, when (s) and in which phase it first left the hand (None: held), the time simulated."""
+
+    position: np.ndarray
+    rotation: np.ndarray
+    slip: float
+    left_s: float | None
+    phase: str
+    elapsed: float
+
+
+class _Hand:
+    """The hand executing one grasp in a :class:`DynamicWorld`, phase by phase: approach, close,
+    then lift and shake; each step holds the spread and drives (or holds) the fingers."""
+
+    def __init__(self, world: DynamicWorld, grasp: GraspResult, palm: np.ndarray,
+                 s: LiftSettings, params: BarrettParams) -> None:
+        self.world, self.grasp, self.palm, self.s = world, grasp, palm, s
+        self.spread = float(grasp.dofs_deg.spread)
+        # the hand as it approaches: the spread set, the fingers at their pre-shape
+        opened = joints_from_dofs([self.spread, *[grasp.preshape_deg] * 3], params=params)
+        self.backoff = pregrasp_pose(palm, s.pregrasp_backoff)[:3, 3] - palm[:3, 3]  # (3,)
+        world.place_hand(palm, opened.tolist(), offset=self.backoff)
+        self.fingers = world.fingers(grasp.preshape_deg)
+        self.offset = self.backoff  # the palm's offset from the planned pose (world)
+        self.carriage = self.backoff  # and where it was when the fingers stopped
+
+    def approach(self, *, guarded: bool) -> float:
+        """From the pre-grasp pose, the fingers held at their pre-shape: to the planned palm
+        pose (smooth start and stop), or guarded, on until the first touch (at most
+        ``overtravel`` past the plan when the plan's approach ended on contact). The travel."""
+        s, world, palm = self.s, self.world, self.palm
+        if not guarded or self.grasp.approach_stop != "contact":
             n = max(1, math.ceil(s.pregrasp_backoff / s.approach_speed / s.time_step))
-            path = [backoff * (1.0 - _smooth(i / n)) for i in range(1, n + 1)]
-        else:  # on until the first touch, at constant speed, at most overtravel past the plan
+            path = [self.backoff * (1.0 - _smooth(i / n)) for i in range(1, n + 1)]
+        else:  # at constant speed
             reach = s.pregrasp_backoff + s.overtravel
             n = max(1, math.ceil(reach / s.approach_speed / s.time_step))
-            path = [backoff + reach * (i / n) * palm[:3, 2] for i in range(1, n + 1)]
+            path = [self.backoff + reach * (i / n) * palm[:3, 2] for i in range(1, n + 1)]
         for offset in path:
             world.move_hand(offset)
-            world.hold_spread(spread)
-            world.hold_fingers_open(fingers)
+            world.hold_spread(self.spread)
+            world.hold_fingers_open(self.fingers)
             world.step()
             if guarded and world.touches():
                 offset = world.hand_offset()  # stop where the hand is (it trails its target)
                 world.move_hand(offset)
                 break
-        travel = float(np.dot(offset - backoff, palm[:3, 2]))
-        # close; a table pinch's palm rises with the closing fingers' DOF (grasp.pinch)
-        rising, up, carriage = grasp.wrist_rise, -palm[:3, 2], offset
+        self.offset = self.carriage = offset
+        return float(np.dot(offset - self.backoff, palm[:3, 2]))
+
+    def close(self) -> _Closed:
+        """Drive the fingers until each stops and they settle (a table pinch's palm rising with
+        the closing fingers' DOF, :mod:`grasp.pinch`), at most ``close_timeout``."""
+        s, world = self.s, self.world
+        rising, up = self.grasp.wrist_rise, -self.palm[:3, 2]
         steps, settle_left = 0, round(s.close_settle / s.time_step)
         while steps * s.time_step < s.close_timeout and settle_left > 0:
             if rising is not None:
-                carriage = offset + max(rising.at(q) for q in world.finger_dofs_deg()) * up
-                world.move_hand(carriage)
-            world.hold_spread(spread)
-            world.drive_fingers(fingers)
+                self.carriage = self.offset + max(rising.at(q)
+                                                  for q in world.finger_dofs_deg()) * up
+                world.move_hand(self.carriage)
+            world.hold_spread(self.spread)
+            world.drive_fingers(self.fingers)
             world.step()
             steps += 1
-            if all(f.done for f in fingers):
+            if all(f.done for f in self.fingers):
                 settle_left -= 1
-        joints_deg = world.joint_values_deg()
-        rose = float(np.dot(world.hand_offset() - offset, up))
-        contacts = world.n_contacts()
-        stops = tuple(f.stop for f in fingers)
-        ref_position, ref_rotation = world.object_in_palm()
-        # load: gravity on, support gone; the hand lifts from where it closed (a guarded
-        # approach stops short of or past the planned pose: going there first would push)
-        start = carriage
-        world.hold_object(None)
-        world.gravity(True)
-        slip, held_s, phase, elapsed = 0.0, None, "held", 0.0
-        position, rotation = ref_position, ref_rotation
-        for name, n_steps, target in _schedule(lift, shake, directions, s):
-            for i in range(n_steps):
-                world.move_hand(start + target((i + 1) * s.time_step))
-                world.hold_spread(spread)
-                world.drive_fingers(fingers)
-                world.step()
-                elapsed += s.time_step
-                position, rotation = world.object_in_palm()
-                distance = float(np.linalg.norm(position - ref_position))
-                slip = max(slip, distance)
-                if held_s is None and distance > s.hold_tolerance:
-                    held_s, phase = elapsed, name
-                if distance > s.drop_distance:
-                    break
-            else:
-                continue
-            break
-        shifted, tilted = _disturbance(neighbours_at, world.neighbour_poses())
+        rose = float(np.dot(world.hand_offset() - self.offset, up))
+        return _Closed(world.joint_values_deg(), rose, world.n_contacts(),
+                       tuple(f.stop for f in self.fingers), *world.object_in_palm())
 
-    moved = position - ref_position
-    relative = ref_rotation.T @ rotation
-    rotation_deg = math.degrees(Rotation.from_matrix(relative).magnitude())
-    if held_s is None:
+    def lift_and_shake(self, schedule, closed: _Closed) -> _Held:
+        """The loaded phases of ``schedule`` (:func:`_schedule`), the hand moving from where it
+        closed (a guarded approach stops short of or past the planned pose: going there first
+        would push), until the object is farther than ``drop_distance`` from where it was."""
+        s, world = self.s, self.world
+        held = _Held(closed.position, closed.rotation, 0.0, None, "held", 0.0)
+        for name, n_steps, target in schedule:
+            for i in range(n_steps):
+                world.move_hand(self.carriage + target((i + 1) * s.time_step))
+                world.hold_spread(self.spread)
+                world.drive_fingers(self.fingers)
+                world.step()
+                held.elapsed += s.time_step
+                held.position, held.rotation = world.object_in_palm()
+                distance = float(np.linalg.norm(held.position - closed.position))
+                held.slip = max(held.slip, distance)
+                if held.left_s is None and distance > s.hold_tolerance:
+                    held.left_s, held.phase = held.elapsed, name
+                if distance > s.drop_distance:
+                    return held
+        return held
+
+
+def _judged(held: _Held, closed: _Closed, shake: bool, mass: float, travel: float,
+            shifted: float, tilted: float) -> LiftResult:
+    """The lift test's result from what its phases measured."""
+    moved = held.position - closed.position
+    relative = closed.rotation.T @ held.rotation
+    if held.left_s is None:
         reason = "held through the lift" + (" and the shakes" if shake else "")
-    elif contacts == 0:
-        reason = f"the hand closed on nothing; the object fell ({phase})"
+    elif closed.contacts == 0:
+        reason = f"the hand closed on nothing; the object fell ({held.phase})"
     else:
-        reason = f"the object left the hand during {phase}, {held_s:.2f} s after gravity came on"
+        reason = (f"the object left the hand during {held.phase}, {held.left_s:.2f} s after "
+                  "gravity came on")
     return LiftResult(
-        success=held_s is None,
+        success=held.left_s is None,
         reason=reason,
         displacement=float(np.linalg.norm(moved)),
-        slip=slip,
+        slip=held.slip,
         offset=moved,
-        rotation_deg=rotation_deg,
-        held_s=elapsed if held_s is None else held_s,
-        total_s=elapsed,
-        phase=phase,
-        finger_stops=stops,
-        joints_deg=joints_deg,
-        mass=world.mass,
-        contacts=contacts,
+        rotation_deg=math.degrees(Rotation.from_matrix(relative).magnitude()),
+        held_s=held.elapsed if held.left_s is None else held.left_s,
+        total_s=held.elapsed,
+        phase=held.phase,
+        finger_stops=closed.stops,
+        joints_deg=closed.joints_deg,
+        mass=mass,
+        contacts=closed.contacts,
         travel=travel,
-        rise=rose,
+        rise=closed.rose,
         neighbour_moved=shifted,
         neighbour_tilt_deg=tilted,
     )
