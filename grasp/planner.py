@@ -45,6 +45,7 @@ from grasp.candidates import (
     table_candidates,
 )
 from grasp.collision import CollisionScene, check_mesh
+from grasp.defaults import AUTOGRASP_BUDGET as AUTOGRASP_BUDGET  # re-exported
 from grasp.obstacles import Obstacles, hand_clear, hit_reason, sweep_hit
 from grasp.pinch import TABLE_PINCH, pinch_failure
 from grasp.screen import Screen, fingertip_span
@@ -60,9 +61,6 @@ MAX_OBJECT_DIAGONAL_M = 2.0
 #: Two grasps are the same grasp when their palm poses are closer than both of these.
 DISTINCT_M = 0.01
 DISTINCT_DEG = 10.0
-#: Candidates the planner autograsps exactly, the screen's most promising first (the search's
-#: budget; docs/grasping.md says how it was chosen).
-AUTOGRASP_BUDGET = 16
 #: Spacing of the hand's points in the planner's screen (metres): 430 points on the hand.
 SCREEN_SPACING_M = 0.02
 #: On a table, the fingertip candidates of an object lower than this (metres above the plane) are

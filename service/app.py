@@ -92,7 +92,6 @@ async def _lifespan(app: FastAPI) -> AsyncIterator[None]:
             processes=settings.planning_processes,
             queue=settings.planning_queue,
             cache=settings.plan_cache,
-            budget=settings.plan_budget,
         ),
         locks=SessionLocks(),
         parser=BodyParser(

@@ -22,6 +22,7 @@ not hold other sessions back by more than a grasp's trials.
 from __future__ import annotations
 
 import asyncio
+import functools
 import hashlib
 import logging
 import multiprocessing
@@ -30,11 +31,13 @@ from collections import OrderedDict
 from collections.abc import Awaitable, Callable
 from concurrent.futures import ProcessPoolExecutor
 from concurrent.futures.process import BrokenProcessPool
+from dataclasses import dataclass
 from functools import partial
 
 import anyio.to_thread
 import numpy as np
 
+from grasp.defaults import AUTOGRASP_BUDGET
 from service import workers
 
 log = logging.getLogger(__name__)
@@ -43,35 +46,58 @@ log = logging.getLogger(__name__)
 PLANNER_NICENESS = 5
 
 
-def plan_grasps(
-    vertices: np.ndarray,
-    faces: np.ndarray,
-    *,
-    n_candidates: int,
-    seed: int,
-    top_k: int,
-    support_plane=None,
-    budget: int | None = None,
-    obstacles: np.ndarray | None = None,
-) -> tuple[list, float]:
-    """``grasp.planner.plan`` on the mesh (vertices (v, 3), faces (f, 3)); also its seconds.
+@dataclass(frozen=True, eq=False)
+class PlanRequest:
+    """One plan, built once where it is asked for (``GET /grasp``) and passed whole to a worker:
+    the mesh (vertices (v, 3), faces (f, 3), the completion's camera frame), the candidates and
+    how many are autograsped (``budget``, :data:`grasp.defaults.AUTOGRASP_BUDGET` by default),
+    the seed, how many grasps come back, the table (a :class:`grasp.table.SupportPlane` in the
+    mesh's frame, or None), the obstacles (voxel centres (k, 3) in the mesh's frame, of the
+    session's pitch :data:`completion.grid.OBSTACLE_PITCH_M`, or None) and how many of the best
+    grasps to lift-test before answering (:mod:`grasp.verify`)."""
 
-    ``support_plane``: a ``grasp.table.SupportPlane`` in the mesh's frame, or None; ``budget``:
-    candidates autograsped (None: the planner's default); ``obstacles``: the session's obstacle
-    voxels' centres (k, 3) moved into the mesh's frame (:class:`grasp.obstacles.Obstacles` of
-    the session's pitch, :data:`completion.grid.OBSTACLE_PITCH_M`), or None."""
+    vertices: np.ndarray
+    faces: np.ndarray
+    n_candidates: int
+    seed: int
+    top_k: int
+    budget: int = AUTOGRASP_BUDGET
+    support_plane: object = None
+    obstacles: np.ndarray | None = None
+    verify: int = 0
+
+    @functools.cached_property
+    def key(self) -> str:
+        """The plan's identity (the cache's key): the mesh's bytes, the obstacles' and every
+        option."""
+        digest = hashlib.sha1()
+        digest.update(np.ascontiguousarray(self.vertices, dtype="<f8").tobytes())
+        digest.update(np.ascontiguousarray(self.faces, dtype="<i8").tobytes())
+        if self.obstacles is not None and len(self.obstacles):
+            digest.update(b"obstacles" + np.ascontiguousarray(self.obstacles, "<f8").tobytes())
+        plane = None if self.support_plane is None else (
+            *np.round(self.support_plane.normal, 12).tolist(),
+            round(self.support_plane.offset, 12))
+        options = (self.n_candidates, self.seed, self.top_k, self.budget, self.verify, plane)
+        digest.update(repr(options).encode())
+        return digest.hexdigest()
+
+
+def plan_grasps(request: PlanRequest) -> tuple[list, float]:
+    """``grasp.planner.plan`` of the request (every autograsped grasp, ranked, when it is to be
+    verified: the verification picks from them); also its seconds."""
     import trimesh
 
     from grasp.obstacles import Obstacles
     from grasp.planner import plan
 
-    mesh = trimesh.Trimesh(vertices, faces, process=False)
+    r = request
+    mesh = trimesh.Trimesh(r.vertices, r.faces, process=False)
     start = time.perf_counter()
-    options = {} if budget is None else {"budget": budget}
-    if obstacles is not None and len(obstacles):
-        options["obstacles"] = Obstacles(obstacles)
-    results = plan(mesh, n_candidates=n_candidates, seed=seed, top_k=top_k,
-                   support_plane=support_plane, **options)
+    obstacles = Obstacles(r.obstacles) if r.obstacles is not None and len(r.obstacles) else None
+    results = plan(mesh, n_candidates=r.n_candidates, seed=r.seed,
+                   top_k=None if r.verify else r.top_k, support_plane=r.support_plane,
+                   budget=r.budget, obstacles=obstacles)
     return results, time.perf_counter() - start
 
 
@@ -112,10 +138,8 @@ class Planner:
 
     def __init__(
         self, workers: int, *, processes: bool, queue: int = 16, cache: int = 128,
-        budget: int | None = None,
     ) -> None:
         self.workers = workers
-        self.budget = budget  # candidates autograsped per plan (None: the planner's default)
         self.processes = processes
         self.queue = queue
         self._pool: ProcessPoolExecutor | None = None
@@ -137,26 +161,13 @@ class Planner:
         return self._pool
 
     async def plan(
-        self,
-        vertices: np.ndarray,
-        faces: np.ndarray,
-        *,
-        n_candidates: int,
-        seed: int,
-        top_k: int,
-        support_plane=None,
-        obstacles: np.ndarray | None = None,
-        verify: int = 0,
-        gone: Callable[[], Awaitable[bool]] | None = None,
+        self, request: PlanRequest, *, gone: Callable[[], Awaitable[bool]] | None = None
     ) -> tuple[list, float, bool]:
         """The plan, its planning seconds (verification included) and whether it came from the
         cache or from the same plan another request was computing (then the seconds are those
-        of the original plan): identical concurrent plans are computed once. ``verify``: lift-test
-        at most this many of the best grasps (:func:`_verified`). ``gone``: an async check that
-        the client disconnected, asked once a worker is free. ``obstacles``: voxel centres
-        (k, 3) in the mesh's frame the hand keeps clear of (:mod:`grasp.obstacles`)."""
-        options = (top_k, self.budget, verify)
-        key = _plan_key(vertices, faces, n_candidates, seed, options, support_plane, obstacles)
+        of the original plan): identical concurrent plans are computed once. ``gone``: an async
+        check that the client disconnected, asked once a worker is free."""
+        key = request.key
         if key in self._cache:
             self._cache.move_to_end(key)
             self.cache_hits += 1
@@ -169,14 +180,11 @@ class Planner:
                 if not (shared.done() and (shared.cancelled() or shared.exception())):
                     raise  # this request was cancelled itself
                 # the computing request's client went, or its worker: plan for this one
-                return await self.plan(vertices, faces, n_candidates=n_candidates, seed=seed,
-                                       top_k=top_k, support_plane=support_plane,
-                                       obstacles=obstacles, verify=verify, gone=gone)
+                return await self.plan(request, gone=gone)
         shared = asyncio.get_running_loop().create_future()
         self._inflight[key] = shared
         try:
-            result = await self._admitted(key, vertices, faces, n_candidates, seed, top_k,
-                                          support_plane, obstacles, verify, gone)
+            result = await self._admitted(request, gone)
         except asyncio.CancelledError:
             shared.cancel()
             raise
@@ -190,8 +198,7 @@ class Planner:
             del self._inflight[key]
         return (*result, False)
 
-    async def _admitted(self, key, vertices, faces, n_candidates, seed, top_k, support_plane,
-                        obstacles, verify, gone) -> tuple[list, float]:
+    async def _admitted(self, r: PlanRequest, gone) -> tuple[list, float]:
         """The plan run by a worker once admitted (bounded queue), verified, then cached."""
         if self._pending >= self.workers + self.queue:
             raise PlannerBusy(
@@ -204,16 +211,16 @@ class Planner:
             async with self._running:
                 if gone is not None and await gone():
                     raise ClientGone("the client disconnected while its plan waited")
-                if verify:  # the lift test's convex pieces, in another worker meanwhile
-                    pieces = asyncio.ensure_future(self._slot(partial(decompose, vertices, faces)))
-                result = await self._run(vertices, faces, n_candidates, seed,
-                                         None if verify else top_k, support_plane, obstacles)
-            if verify:
+                if r.verify:  # the lift test's convex pieces, in another worker meanwhile
+                    pieces = asyncio.ensure_future(
+                        self._slot(partial(decompose, r.vertices, r.faces)))
+                result = await self._call(partial(plan_grasps, r))
+            if r.verify:
                 start = time.perf_counter()
                 await pieces
-                ranked = await self._verified(vertices, faces, result[0], verify, support_plane,
-                                              seed)
-                result = (ranked[:top_k], result[1] + time.perf_counter() - start)
+                ranked = await self._verified(r.vertices, r.faces, result[0], r.verify,
+                                              r.support_plane, r.seed)
+                result = (ranked[:r.top_k], result[1] + time.perf_counter() - start)
         finally:
             self._pending -= 1
             if pieces is not None and not pieces.done():
@@ -221,7 +228,7 @@ class Planner:
             elif pieces is not None and not pieces.cancelled():
                 pieces.exception()  # retrieved: no "never retrieved" warning
         if self._cache_size:
-            self._cache[key] = result
+            self._cache[r.key] = result
             while len(self._cache) > self._cache_size:
                 self._cache.popitem(last=False)
         return result
@@ -247,20 +254,6 @@ class Planner:
         """``call`` in a worker (process or thread) once a worker slot is free."""
         async with self._running:
             return await self._call(call)
-
-    async def _run(self, vertices, faces, n_candidates, seed, top_k, support_plane, obstacles):
-        call = partial(
-            plan_grasps,
-            vertices,
-            faces,
-            n_candidates=n_candidates,
-            seed=seed,
-            top_k=top_k,
-            support_plane=support_plane,
-            budget=self.budget,
-            obstacles=obstacles,
-        )
-        return await self._call(call)
 
     async def _call(self, call):
         """``call`` in a worker process, or a thread (``processes=False``)."""
@@ -295,17 +288,3 @@ class Planner:
 
 async def _gather(calls):
     return await asyncio.gather(*calls)
-
-
-def _plan_key(vertices, faces, n_candidates, seed, top_k, support_plane, obstacles=None) -> str:
-    """The identity of a plan: the mesh's bytes, the obstacles' and every option."""
-    digest = hashlib.sha1()
-    digest.update(np.ascontiguousarray(vertices, dtype="<f8").tobytes())
-    digest.update(np.ascontiguousarray(faces, dtype="<i8").tobytes())
-    if obstacles is not None and len(obstacles):
-        digest.update(b"obstacles" + np.ascontiguousarray(obstacles, dtype="<f8").tobytes())
-    plane = None if support_plane is None else (
-        *np.round(support_plane.normal, 12).tolist(), round(support_plane.offset, 12)
-    )
-    digest.update(repr((n_candidates, seed, top_k, plane)).encode())
-    return digest.hexdigest()

@@ -26,6 +26,7 @@ from service.deps import Services, ServicesDep, require_token
 from service.inputs import InputError
 from service.parsing import ParsedView
 from service.pipeline import Snapshot
+from service.planning import PlanRequest
 from service.schemas import (
     ErrorOut,
     GraspsOut,
@@ -215,11 +216,10 @@ async def plan_session(
         out = _grasps_out(snapshot, [], timing, plane)
         out.reason = problem
         return out, mesh, snapshot
-    results, seconds, cached = await services.planner.plan(
-        mesh.vertices, mesh.faces, n_candidates=n, seed=s.plan_seed, top_k=top_k,
-        support_plane=plane, obstacles=snapshot.obstacles, verify=tries,
-        gone=request.is_disconnected,
-    )
+    asked = PlanRequest(mesh.vertices, mesh.faces, n_candidates=n, seed=s.plan_seed,
+                        top_k=top_k, budget=s.plan_budget, support_plane=plane,
+                        obstacles=snapshot.obstacles, verify=tries)
+    results, seconds, cached = await services.planner.plan(asked, gone=request.is_disconnected)
     await services.io(services.pipeline.store.get, session_id)  # deleted while it was planned: 404
     total = (time.perf_counter() - start) * 1e3
     timing["planning"] = 0.0 if cached else seconds * 1e3

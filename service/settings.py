@@ -8,7 +8,7 @@ from pathlib import Path
 from pydantic import Field, SecretStr, field_validator, model_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
-from grasp.planner import AUTOGRASP_BUDGET
+from grasp.defaults import AUTOGRASP_BUDGET
 
 
 class Settings(BaseSettings):

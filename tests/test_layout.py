@@ -79,3 +79,16 @@ def test_every_source_and_test_file_reads_in_one_sitting() -> None:
     long = {str(p.relative_to(REPO)): n for p in files
             if (n := len(p.read_text().splitlines())) > MAX_LINES}
     assert not long, f"files over {MAX_LINES} lines: {long}"
+
+
+#: Modules of grasp/ that hold constants only (they import nothing), which settings may name.
+CONSTANTS = {"grasp.defaults"}
+
+
+def test_the_service_settings_load_no_planner() -> None:
+    """``service.settings`` (read by every process of the service, the client's tests, the docs)
+    imports nothing of grasp/ beyond its constants modules, and those import nothing."""
+    graph = _graph()
+    assert {t for t in graph["service.settings"] if t.startswith("grasp")} <= CONSTANTS
+    for name in CONSTANTS:
+        assert not graph[name], (name, graph[name])

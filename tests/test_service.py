@@ -417,32 +417,35 @@ def test_planner_queue_is_bounded_and_gone_clients_are_dropped(monkeypatch):
 
     calls = []
 
-    def slow_plan(vertices, faces, **options):
-        calls.append(options)
+    def slow_plan(request):
+        calls.append(request)
         _time.sleep(0.3)
         return [], 0.3
 
     monkeypatch.setattr(planning, "plan_grasps", slow_plan)
+    mesh = (np.zeros((3, 3)), np.array([[0, 1, 2]]))
+
+    def asked(n):
+        return planning.PlanRequest(*mesh, n_candidates=n, seed=0, top_k=1)
 
     async def scenario():
         planner = planning.Planner(1, processes=False, queue=0, cache=0)
-        mesh = (np.zeros((3, 3)), np.array([[0, 1, 2]]))
-        first = asyncio.create_task(planner.plan(*mesh, n_candidates=4, seed=0, top_k=1))
+        first = asyncio.create_task(planner.plan(asked(4)))
         await asyncio.sleep(0.05)
         with pytest.raises(planning.PlannerBusy, match="try again"):
-            await planner.plan(*mesh, n_candidates=5, seed=0, top_k=1)
+            await planner.plan(asked(5))
         await first
         queued = planning.Planner(1, processes=False, queue=1, cache=0)
-        running = asyncio.create_task(queued.plan(*mesh, n_candidates=6, seed=0, top_k=1))
+        running = asyncio.create_task(queued.plan(asked(6)))
         await asyncio.sleep(0.05)
 
         async def gone():
             return True
 
         with pytest.raises(planning.ClientGone):
-            await queued.plan(*mesh, n_candidates=7, seed=0, top_k=1, gone=gone)
+            await queued.plan(asked(7), gone=gone)
         await running
         assert queued.pending == 0
 
     asyncio.run(scenario())
-    assert [c["n_candidates"] for c in calls] == [4, 6]
+    assert [c.n_candidates for c in calls] == [4, 6]

@@ -233,8 +233,9 @@ def test_a_verification_does_not_starve_other_sessions(monkeypatch):
 
         async def ask(name, mesh, verify, delay):
             await asyncio.sleep(delay)
-            out, _, _ = await planner.plan(mesh.vertices, mesh.faces, n_candidates=16, seed=0,
-                                           top_k=1, support_plane=FLOOR, verify=verify)
+            out, _, _ = await planner.plan(planning.PlanRequest(
+                mesh.vertices, mesh.faces, n_candidates=16, seed=0, top_k=1,
+                support_plane=FLOOR, verify=verify))
             done[name] = time.perf_counter()
             return out
 
