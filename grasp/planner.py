@@ -235,8 +235,10 @@ def plan(
         candidates = kept if kept else candidates
     lap("setup")
     screened = budget is not None and budget < len(candidates)
-    ranked_order = (screen_order(scene, candidates, travel, obstacles) if screened
-                    else list(range(len(candidates))))
+    if screened:
+        ranked_order, candidates = screen_order(scene, candidates, travel, obstacles)
+    else:
+        ranked_order = list(range(len(candidates)))
     first = sorted(ranked_order[:budget] if screened else ranked_order)  # candidate order: ties
     batch, rest = [candidates[i] for i in first], ranked_order[budget:] if screened else []
     lap("screen")
@@ -320,9 +322,13 @@ def obstacle_failure(blocked: Sequence, refused: int) -> str | None:
 
 def screen_order(scene: CollisionScene, candidates: Sequence[Candidate], travel: float,
                  obstacles: Obstacles | None = None):
-    """Candidate indices, most promising first: on a table, the fingertip grasps of an object
-    lower than :data:`PINCH_FIRST_HEIGHT_M` (at most four; the screen cannot see what their
-    closing tips meet, and on a flat object they are often the only force closure), then by the
+    """Candidate indices, most promising first, and the candidates (among ``obstacles``, one
+    whose open hand the screen predicts to stop at a neighbour is pre-shaped,
+    :data:`CLUTTER_PRESHAPE_DEG`, where the pre-shaped hand is predicted to reach the object).
+
+    The order: on a table, the fingertip grasps of an object lower than
+    :data:`PINCH_FIRST_HEIGHT_M` (at most four; the screen cannot see what their closing tips
+    meet, and on a flat object they are often the only force closure), then by the
     screen's prediction: approaches that meet the object (and fingertip grasps, which stop above
     it by design), then those where the palm touches (power grasps, :func:`rank_key`'s second
     key), then the centre of mass nearest the palm (a short lever); ties in candidate order.
@@ -339,12 +345,26 @@ def screen_order(scene: CollisionScene, candidates: Sequence[Candidate], travel:
     shapes = np.array([c.preshape_deg for c in candidates])
     touches, palm, depth = screen.predict(palms, spreads, travel, scene.center, shapes)
     pinch = np.array([c.source in ("pinch", TABLE_PINCH) for c in candidates])
+    candidates = list(candidates)
+    if screen.obstacles is not None:  # an open hand stopped by a neighbour: pre-shaped instead?
+        again = np.flatnonzero(~touches & (shapes == 0.0) & ~pinch)
+        if len(again):
+            shaped = np.full(len(again), CLUTTER_PRESHAPE_DEG)
+            t, p, d = screen.predict(palms[again], spreads[again],
+                                     np.broadcast_to(travel, len(candidates))[again],
+                                     scene.center, shaped)
+            for k in np.flatnonzero(t):
+                i = again[k]
+                candidates[i] = dataclasses.replace(candidates[i],
+                                                    preshape_deg=CLUTTER_PRESHAPE_DEG)
+                touches[i], palm[i], depth[i] = True, p[k], d[k]
     touches |= pinch  # a fingertip grasp stops above a low object: its fingers meet it
     plane = scene.support_plane
     flat = plane is not None and plane.height(scene.mesh.vertices).max() < PINCH_FIRST_HEIGHT_M
     first = pinch if flat else np.zeros(len(candidates), dtype=bool)
-    return sorted(range(len(candidates)),
-                  key=lambda i: (not first[i], not touches[i], not palm[i], depth[i], i))
+    order = sorted(range(len(candidates)),
+                   key=lambda i: (not first[i], not touches[i], not palm[i], depth[i], i))
+    return order, candidates
 
 
 def _best_distinct(results: Sequence[GraspResult], scene: CollisionScene, top_k: int):
