@@ -185,10 +185,9 @@ def plan(
     obstacles : Obstacles or None
         What the hand must not touch besides the object and the table (the neighbours,
         :mod:`grasp.obstacles`), in the mesh's frame: a candidate whose open hand meets one at
-        the pre-grasp is tried pre-shaped or not at all, the screen orders last the approaches
-        it predicts to meet one, and a grasp whose approach or closing would is refused with
-        the reason, the screen's next candidate autograsped in its place (the budget counts
-        the grasps the obstacles allow). None or empty: exactly the plan without.
+        the pre-grasp is tried pre-shaped or not at all, and a grasp whose approach or closing
+        would is refused with the reason, the screen's next candidate autograsped in its place
+        (the budget counts the grasps the obstacles allow). None or empty: exactly the plan without.
     timings : dict or None
         Filled with each stage's seconds ("setup": the collision model and the candidates;
         "screen"; "autograsp"; "rank", with the quality measures; "verify") and the counts
@@ -235,10 +234,8 @@ def plan(
         candidates = kept if kept else candidates
     lap("setup")
     screened = budget is not None and budget < len(candidates)
-    if screened:
-        ranked_order, candidates = screen_order(scene, candidates, travel, obstacles)
-    else:
-        ranked_order = list(range(len(candidates)))
+    ranked_order = (screen_order(scene, candidates, travel) if screened
+                    else list(range(len(candidates))))
     first = sorted(ranked_order[:budget] if screened else ranked_order)  # candidate order: ties
     batch, rest = [candidates[i] for i in first], ranked_order[budget:] if screened else []
     lap("screen")
@@ -320,15 +317,10 @@ def obstacle_failure(blocked: Sequence, refused: int) -> str | None:
             f"{refused} grasps refused")
 
 
-def screen_order(scene: CollisionScene, candidates: Sequence[Candidate], travel: float,
-                 obstacles: Obstacles | None = None):
-    """Candidate indices, most promising first, and the candidates (among ``obstacles``, one
-    whose open hand the screen predicts to stop at a neighbour is pre-shaped,
-    :data:`CLUTTER_PRESHAPE_DEG`, where the pre-shaped hand is predicted to reach the object).
-
-    The order: on a table, the fingertip grasps of an object lower than
-    :data:`PINCH_FIRST_HEIGHT_M` (at most four; the screen cannot see what their closing tips
-    meet, and on a flat object they are often the only force closure), then by the
+def screen_order(scene: CollisionScene, candidates: Sequence[Candidate], travel: float):
+    """Candidate indices, most promising first: on a table, the fingertip grasps of an object
+    lower than :data:`PINCH_FIRST_HEIGHT_M` (at most four; the screen cannot see what their
+    closing tips meet, and on a flat object they are often the only force closure), then by the
     screen's prediction: approaches that meet the object (and fingertip grasps, which stop above
     it by design), then those where the palm touches (power grasps, :func:`rank_key`'s second
     key), then the centre of mass nearest the palm (a short lever); ties in candidate order.
@@ -340,31 +332,17 @@ def screen_order(scene: CollisionScene, candidates: Sequence[Candidate], travel:
     spreads = np.array([c.spread_deg for c in candidates])
     if any(c.travel is not None for c in candidates):
         travel = np.array([travel if c.travel is None else c.travel for c in candidates])
-    screen = Screen(scene.mesh, spacing=SCREEN_SPACING_M, nearest=True,
-                    support_plane=scene.support_plane, obstacles=obstacles)
-    shapes = np.array([c.preshape_deg for c in candidates])
-    touches, palm, depth = screen.predict(palms, spreads, travel, scene.center, shapes)
+    screen = Screen(
+        scene.mesh, spacing=SCREEN_SPACING_M, nearest=True, support_plane=scene.support_plane
+    )
+    touches, palm, depth = screen.predict(palms, spreads, travel, scene.center)
     pinch = np.array([c.source in ("pinch", TABLE_PINCH) for c in candidates])
-    candidates = list(candidates)
-    if screen.obstacles is not None:  # an open hand stopped by a neighbour: pre-shaped instead?
-        again = np.flatnonzero(~touches & (shapes == 0.0) & ~pinch)
-        if len(again):
-            shaped = np.full(len(again), CLUTTER_PRESHAPE_DEG)
-            t, p, d = screen.predict(palms[again], spreads[again],
-                                     np.broadcast_to(travel, len(candidates))[again],
-                                     scene.center, shaped)
-            for k in np.flatnonzero(t):
-                i = again[k]
-                candidates[i] = dataclasses.replace(candidates[i],
-                                                    preshape_deg=CLUTTER_PRESHAPE_DEG)
-                touches[i], palm[i], depth[i] = True, p[k], d[k]
     touches |= pinch  # a fingertip grasp stops above a low object: its fingers meet it
     plane = scene.support_plane
     flat = plane is not None and plane.height(scene.mesh.vertices).max() < PINCH_FIRST_HEIGHT_M
     first = pinch if flat else np.zeros(len(candidates), dtype=bool)
-    order = sorted(range(len(candidates)),
-                   key=lambda i: (not first[i], not touches[i], not palm[i], depth[i], i))
-    return order, candidates
+    return sorted(range(len(candidates)),
+                  key=lambda i: (not first[i], not touches[i], not palm[i], depth[i], i))
 
 
 def _best_distinct(results: Sequence[GraspResult], scene: CollisionScene, top_k: int):

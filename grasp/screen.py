@@ -21,10 +21,7 @@ machine, where their exact autograsps take about 0.9 s (``python -m grasp.planne
 stages; ``--exact 0`` autograsps all).
 
 With a support plane (``support_plane=``) the table is an obstacle too: a point's clearance is
-the smaller of its distance to the object and its height above the plane; with ``obstacles=``
-(the neighbours' voxels, :mod:`grasp.obstacles`) also of its distance to them
-(:meth:`DistanceField.of_cubes`), so that an approach that meets a neighbour first is predicted
-to stop there, not to touch the object. For the planner's
+the smaller of its distance to the object and its height above the plane. For the planner's
 table candidates: :func:`open_hand_lowest` (exact primitives) and :func:`finger_reach`.
 """
 
@@ -39,15 +36,12 @@ from scipy import ndimage
 
 from completion.grid import sample_surface
 from grasp.table import SupportPlane
-from hands.barrett import BH8_282, BarrettParams, HandKinematics
-from hands.barrett.kinematics import joints_from_dofs
+from hands.barrett import BH8_282, JOINT_NAMES, BarrettParams, HandKinematics
 
 #: Voxels of the distance field across the object's largest extent.
 FIELD_VOXELS = 32
 #: Spacing of the points sampled on the hand's primitives (metres).
 CLOUD_SPACING_M = 0.006
-#: Cell of the obstacles' distance field (metres, :meth:`DistanceField.of_cubes`).
-OBSTACLE_FIELD_M = 0.01
 
 
 @dataclass(frozen=True)
@@ -81,21 +75,6 @@ class DistanceField:
         # voxel centre of the other kind
         values = pitch * np.where(solid, 0.5 - inside, outside - 0.5)
         return cls(values, origin, pitch, mesh.bounds[0], mesh.bounds[1])
-
-    @classmethod
-    def of_cubes(cls, centres: np.ndarray, reach: float, *, pitch: float = OBSTACLE_FIELD_M,
-                 pad: int = 2) -> DistanceField:
-        """A lower bound of the distance to cubes (``centres`` (n, 3), each reaching ``reach``
-        from its centre: :class:`grasp.obstacles.Obstacles`) on a grid of ``pitch``: the
-        Euclidean distance transform between cells, less a cell's and a cube's reach (negative
-        in and near them; about 5 ms for a table's neighbours at 1 cm)."""
-        lower, upper = centres.min(axis=0) - reach, centres.max(axis=0) + reach
-        origin = lower - pad * pitch
-        shape = np.ceil((upper - lower) / pitch).astype(int) + 2 * pad + 1
-        occupied = np.zeros(shape, dtype=bool)
-        occupied[tuple(np.rint((centres - origin) / pitch).astype(int).T)] = True
-        values = pitch * ndimage.distance_transform_edt(~occupied) - reach - np.sqrt(3) * pitch
-        return cls(values, origin, pitch, lower, upper)
 
     def __call__(self, points: np.ndarray, *, nearest: bool = False) -> np.ndarray:
         """Signed distance at (..., 3) points; beyond the grid a lower bound (the larger of the
@@ -241,13 +220,9 @@ class Screen:
         spacing: float = CLOUD_SPACING_M,
         nearest: bool = False,
         support_plane: SupportPlane | None = None,
-        obstacles=None,
     ) -> None:
         self.field = DistanceField.of(mesh)
         self.support_plane = support_plane
-        #: the obstacles' field (:class:`grasp.obstacles.Obstacles`; None: none)
-        self.obstacles = (DistanceField.of_cubes(obstacles.centres, obstacles.reach)
-                          if obstacles is not None and len(obstacles) else None)
         self.kinematics = HandKinematics(params)
         self.cloud = _hand_cloud(params, spacing)
         self.margin = margin
@@ -258,46 +233,31 @@ class Screen:
             [np.full(len(pts), link == "palm") for link, pts in self.cloud.items()]
         )
 
-    def open_hand(self, spread_deg: float, preshape_deg: float = 0.0) -> np.ndarray:
-        """(n, 3) points of the open hand at this spread (its fingers at ``preshape_deg``: the
-        clutter's pre-shape, :data:`grasp.planner.CLUTTER_PRESHAPE_DEG`), palm frame (cached)."""
-        key = (float(spread_deg), float(preshape_deg))
+    def open_hand(self, spread_deg: float) -> np.ndarray:
+        """(n, 3) points of the open hand at this spread, palm frame (cached per spread)."""
+        key = float(spread_deg)
         if key not in self._open:
-            joints = joints_from_dofs([key[0], *[key[1]] * 3], params=self.kinematics.params)
+            joints = np.zeros(len(JOINT_NAMES))
+            joints[[JOINT_NAMES.index("f1_spread"), JOINT_NAMES.index("f2_spread")]] = key
             poses = self.kinematics.link_poses(np.radians(joints))
             self._open[key] = np.concatenate(
                 [(poses[link] @ pts.T)[:3].T for link, pts in self.cloud.items()]
             )
         return self._open[key]
 
-    def _world(self, palms: np.ndarray, spreads_deg: np.ndarray, travel=None,
-               preshapes_deg=None) -> np.ndarray:
-        """(k, n, 3) the open hands at the palm poses (fingers at ``preshapes_deg``, (k,);
-        default open), moved ``travel`` along their +z."""
-        shapes = np.zeros(len(palms)) if preshapes_deg is None else preshapes_deg
-        local = np.stack([self.open_hand(s, p) for s, p in zip(spreads_deg, shapes, strict=True)])
+    def _world(self, palms: np.ndarray, spreads_deg: np.ndarray, travel=None) -> np.ndarray:
+        """(k, n, 3) the open hands at the palm poses, moved ``travel`` along their +z."""
+        local = np.stack([self.open_hand(s) for s in spreads_deg])
         origin = palms[:, :3, 3]
         if travel is not None:
             origin = origin + travel[:, None] * palms[:, :3, 2]
         return np.einsum("kij,knj->kni", palms[:, :3, :3], local) + origin[:, None, :]
 
     def _gaps(self, hands: np.ndarray) -> np.ndarray:
-        """(k, n) clearance of (k, n, 3) hand points: to the object, or the table or an
-        obstacle if nearer."""
+        """(k, n) clearance of (k, n, 3) hand points: to the object, or the table if nearer."""
         gaps = self.field(hands, nearest=self.nearest)
-        return np.minimum(gaps, self._others(hands)) if self._has_others else gaps
-
-    @property
-    def _has_others(self) -> bool:
-        return self.support_plane is not None or self.obstacles is not None
-
-    def _others(self, hands: np.ndarray) -> np.ndarray:
-        """(k, n) clearance of (k, n, 3) hand points to what is not the object (inf: nothing)."""
-        gaps = np.full(hands.shape[:-1], np.inf)
         if self.support_plane is not None:
-            gaps = self.support_plane.height(hands)
-        if self.obstacles is not None:
-            gaps = np.minimum(gaps, self.obstacles(hands, nearest=True))
+            gaps = np.minimum(gaps, self.support_plane.height(hands))
         return gaps
 
     def clearance(self, palms: np.ndarray, spreads_deg: np.ndarray) -> np.ndarray:
@@ -310,8 +270,7 @@ class Screen:
         return self.clearance(palms, spreads_deg) > self.margin
 
     def approach(
-        self, palms: np.ndarray, spreads_deg: np.ndarray, max_travel, tol: float = 1e-3,
-        preshapes_deg=None,
+        self, palms: np.ndarray, spreads_deg: np.ndarray, max_travel, tol: float = 1e-3
     ) -> np.ndarray:
         """(k,) travel along each palm's +z to first contact (``max_travel``, a number or (k,),
         if none): sphere tracing, each step the hand's clearance, which no point of the hand
@@ -323,8 +282,7 @@ class Screen:
             if not active.any():
                 break
             idx = np.flatnonzero(active)
-            shapes = None if preshapes_deg is None else preshapes_deg[idx]
-            hands = self._world(palms[idx], spreads_deg[idx], travel[idx], shapes)
+            hands = self._world(palms[idx], spreads_deg[idx], travel[idx])
             gap = self._gaps(hands).min(axis=1)
             done = (gap < tol) | (travel[idx] >= limit[idx])
             step = np.where(done, 0.0, np.maximum(gap, tol))
@@ -333,20 +291,19 @@ class Screen:
         return travel
 
     def predict(
-        self, palms: np.ndarray, spreads_deg: np.ndarray, max_travel, center: np.ndarray,
-        preshapes_deg=None,
+        self, palms: np.ndarray, spreads_deg: np.ndarray, max_travel, center: np.ndarray
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """What the planner orders its candidates by, for open hands approaching along their +z
         (at most ``max_travel``, a number or (k,)): (touches (k,) bool: the approach meets the
         object, not the table; palm (k,) bool: the palm is what touches it, within a voxel;
         depth (k,): distance (m) from the palm to ``center`` along the approach when it stops)."""
-        travel = self.approach(palms, spreads_deg, max_travel, preshapes_deg=preshapes_deg)
-        world = self._world(palms, spreads_deg, travel, preshapes_deg)
+        travel = self.approach(palms, spreads_deg, max_travel)
+        world = self._world(palms, spreads_deg, travel)
         hands = self.field(world, nearest=self.nearest)
         palm_gap = hands[:, self.palm_points].min(axis=1)
         touches = travel < max_travel
-        if self._has_others:  # stopped by the object, not by the table or an obstacle
-            touches &= hands.min(axis=1) <= self._others(world).min(axis=1)
+        if self.support_plane is not None:  # stopped by the object, not by the table
+            touches &= hands.min(axis=1) <= self.support_plane.height(world).min(axis=1)
         palm = touches & (palm_gap <= hands.min(axis=1) + self.field.pitch)
         stop = palms[:, :3, 3] + travel[:, None] * palms[:, :3, 2]
         depth = np.einsum("ki,ki->k", np.asarray(center)[None, :] - stop, palms[:, :3, 2])

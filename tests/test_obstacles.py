@@ -169,25 +169,3 @@ def test_the_batched_pregrasp_check_agrees_with_the_sweep_of_a_hand_standing_sti
         assert 0 < batched.sum() < len(candidates)  # the scene blocks some, not all
     assert hand_clear(None, palms, spreads).all()
 
-
-def test_the_screen_sees_obstacles_an_approach_meets_before_the_object(target):
-    """Among obstacles the screen's approach stops at one in the way, which it does not count as
-    touching the object (the planner autograsps those last); its field never overstates the
-    distance to a voxel's cube."""
-    from grasp.screen import DistanceField, Screen
-
-    down = np.eye(4)
-    down[:3, :3] = [[1, 0, 0], [0, -1, 0], [0, 0, -1]]  # palm +z pointing down
-    down[:3, 3] = [0.0, 0.0, 0.35]
-    lid = standing_box((0.3, 0.3, 0.02), (0.0, 0.0))
-    lid.apply_translation([0, 0, 0.2])  # a shelf between the hand and the target's top
-    obstacles = Obstacles.from_meshes([lid])
-    args = (down[None], np.zeros(1), 0.4, np.array([0.0, 0.0, 0.06]))
-    touches, _, _ = Screen(target, support_plane=TABLE).predict(*args)
-    assert touches[0]
-    touches, _, depth = Screen(target, support_plane=TABLE, obstacles=obstacles).predict(*args)
-    assert not touches[0] and depth[0] > 0.1  # stopped above the shelf, far from the target
-    field = DistanceField.of_cubes(obstacles.centres, obstacles.reach)
-    points = np.random.default_rng(0).uniform([-0.3, -0.3, 0.0], [0.3, 0.3, 0.4], (2000, 3))
-    exact = np.linalg.norm(points[:, None] - obstacles.centres[None], axis=2).min(axis=1)
-    assert (field(points, nearest=True) <= exact - obstacles.reach).all()  # a cube: within reach
