@@ -23,6 +23,7 @@ import numpy as np
 from scipy import ndimage
 
 from completion.depth import DEPTH_FILTER, DepthFilter
+from grasp_client.wire import SupportPlane
 
 GRID_SIZE = 40
 GRID_SHAPE = (GRID_SIZE, GRID_SIZE, GRID_SIZE)
@@ -224,21 +225,10 @@ def view_grid(
     return carry_grid(previous_grid, previous_camera, camera_to_world), None
 
 
-def plane_in_frame(plane: np.ndarray, frame_to_world: np.ndarray) -> np.ndarray:
-    """A plane [nx, ny, nz, d] (n·x + d = 0) of the world, expressed in the frame whose pose
-    (frame→world, rigid) is ``frame_to_world``: [Rᵀn, n·t + d]."""
-    plane = np.asarray(plane, dtype=np.float64)
-    pose = np.asarray(frame_to_world, dtype=np.float64)
-    normal = plane[:3]
-    return np.array([*(pose[:3, :3].T @ normal), normal @ pose[:3, 3] + plane[3]])
-
-
-def voxels_below_plane(grid_to_camera: np.ndarray, plane: np.ndarray) -> np.ndarray:
-    """(40, 40, 40) bool: voxels whose centre lies strictly below ``plane`` [nx, ny, nz, d]
-    (n·x + d < 0, n pointing up), the plane given in the grid's camera frame."""
-    plane = np.asarray(plane, dtype=np.float64)
-    side = voxel_centers(grid_to_camera) @ plane[:3] + plane[3]
-    return (side < 0).reshape(GRID_SHAPE)
+def voxels_below_plane(grid_to_camera: np.ndarray, plane: SupportPlane) -> np.ndarray:
+    """(40, 40, 40) bool: voxels whose centre lies strictly below ``plane`` (n·x + d < 0, n
+    pointing up), the plane given in the grid's camera frame."""
+    return (plane.height(voxel_centers(grid_to_camera)) < 0).reshape(GRID_SHAPE)
 
 
 def voxel_centers(grid_to_camera: np.ndarray) -> np.ndarray:

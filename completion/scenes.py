@@ -48,6 +48,7 @@ from completion import grid
 from completion.depth import DEPTH_FILTER, DepthFilter
 from completion.objects import SPLITS, load_object, object_ids
 from completion.render import Renderer, SensorModel, look_at
+from grasp_client.wire import SupportPlane
 
 CONDITIONS: tuple[str, ...] = (
     "camera_pan",
@@ -70,7 +71,7 @@ SINGLE_OBJECT_CONDITIONS: tuple[str, ...] = (
 NOISY_BY_DEFAULT: tuple[str, ...] = ("tabletop",)
 CAMERA_MOTIONS: tuple[str, ...] = ("still", "pan", "arc")
 #: The table of the tabletop condition: its top is the world plane z = 0.
-TABLE_PLANE = (0.0, 0.0, 1.0, 0.0)
+TABLE_PLANE = SupportPlane([0.0, 0.0, 1.0], 0.0)
 TABLE_SIZE_M = (1.2, 1.2, 0.03)
 DEFAULT_SENSOR = SensorModel()
 VIEWS = 12
@@ -313,7 +314,7 @@ def make_sequence(
         centre = grid.transform_points(meshes[0].vertices, pose)
         cameras, motion = _tabletop_cameras(rng, (centre.min(0) + centre.max(0)) / 2, views)
         scenery = [table_mesh()]
-        extra = {"support_plane": list(TABLE_PLANE), "camera_motion": motion,
+        extra = {"support_plane": TABLE_PLANE.as_array().tolist(), "camera_motion": motion,
                  "stable_pose_probability": probability}
     elif condition == "two_object_pan":
         meshes, poses, scale = _pair(rng, *meshes)

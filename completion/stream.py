@@ -11,11 +11,11 @@ view: occupancy probabilities (40, 40, 40) with the grid's ``grid_to_camera`` (t
 camera frame). A stream counts as having seen the object only after a view with at least one
 observed voxel; before that it reports 0 occupied voxels and has no completion.
 
-A support plane (the table the object rests on, world frame,
-:meth:`CompletionStream.set_support_plane`) cuts the completion: every voxel whose centre lies
-below it is empty in :meth:`CompletionStream.completion`, so meshing, planning and every output
-see nothing under the table. The views then need their camera poses (the plane is in the world
-frame, the grid in the latest camera's).
+A support plane (the table the object rests on, a :class:`grasp_client.wire.SupportPlane` in the
+world frame, :meth:`CompletionStream.set_support_plane`) cuts the completion: every voxel whose
+centre lies below it is empty in :meth:`CompletionStream.completion`, so meshing, planning and
+every output see nothing under the table. The views then need their camera poses (the plane is
+in the world frame, the grid in the latest camera's).
 
 What else the views showed near the object (the neighbours on a table) a service may keep with
 the stream as obstacle voxels in the world frame (:meth:`CompletionStream.add_obstacles`); the
@@ -35,6 +35,7 @@ import numpy as np
 import torch
 
 from completion import grid as G
+from grasp_client.wire import SupportPlane
 
 DEFAULT_THRESHOLD = 0.5
 #: The other objects a session's views showed (obstacles to the planner, :mod:`grasp.obstacles`)
@@ -89,17 +90,14 @@ class CompletionStream:
         self._observed: np.ndarray | None = None  # the latest view's input grid (bool)
         # what else the views showed near the object: (n, 3) int32 world voxel keys
         self.obstacle_keys = np.zeros((0, 3), dtype=np.int32)
-        self.support_plane: np.ndarray | None = None  # world [nx, ny, nz, d], |n| = 1
+        self.support_plane: SupportPlane | None = None  # world frame
 
-    def set_support_plane(self, plane) -> None:
-        """Cut every completion at this plane from now on: [nx, ny, nz, d] in the world frame,
-        n·x + d = 0 with n pointing up (normalised here). ValueError for a plane that is not four
-        finite numbers with a non-zero normal, or when the latest view came without a camera
-        pose (the plane could not be placed in its frame)."""
+    def set_support_plane(self, plane: SupportPlane) -> None:
+        """Cut every completion at this plane (world frame) from now on. ValueError when the
+        latest view came without a camera pose (the plane could not be placed in its frame)."""
         if self.views and self.camera_to_world is None:
-            raise ValueError("a support plane is in the world frame: it needs the views' "
-                             "camera poses (the latest view came without one)")
-        self.support_plane = _unit_plane(plane)
+            raise ValueError(f"{SupportPlane.NEEDS_POSES} (the latest view came without one)")
+        self.support_plane = plane
 
     # ------------------------------------------------------------------ input
     def add_view(
@@ -111,7 +109,7 @@ class CompletionStream:
         points: np.ndarray | None = None,
         grid: G.VoxelGrid | None = None,
         camera_to_world: np.ndarray | None = None,
-        support_plane: np.ndarray | None = None,
+        support_plane: SupportPlane | None = None,
     ) -> ViewResult:
         """Add one view given as exactly one of depth (+ intrinsics, mask), points or grid;
         ``support_plane`` (world frame, needs ``camera_to_world``) is kept from this view on, as
@@ -128,10 +126,10 @@ class CompletionStream:
             if camera_to_world.shape != (4, 4) or not np.isfinite(camera_to_world).all():
                 raise ValueError("camera_to_world must be a finite 4×4 matrix")
         elif self.support_plane is not None or support_plane is not None:
-            raise ValueError("a support plane is in the world frame: every view of a stream "
-                             "with one needs its camera pose")
+            raise ValueError(f"{SupportPlane.NEEDS_POSES}: every view of a stream with one "
+                             "needs its pose")
         if support_plane is not None:
-            self.support_plane = _unit_plane(support_plane)
+            self.support_plane = support_plane
         bounds = None
         if grid is None:
             pts = G.as_points(points)
@@ -198,7 +196,7 @@ class CompletionStream:
         or no grid)."""
         if self.support_plane is None or self.grid_to_camera is None:
             return None
-        plane = G.plane_in_frame(self.support_plane, self.camera_to_world)
+        plane = self.support_plane.transformed(self.camera_to_world)
         return G.voxels_below_plane(self.grid_to_camera, plane)
 
     # ------------------------------------------------------------------ output
@@ -242,7 +240,7 @@ class CompletionStream:
         if self._observed is not None:
             arrays["observed"] = np.packbits(self._observed.reshape(-1))
         if self.support_plane is not None:
-            arrays["support_plane"] = self.support_plane
+            arrays["support_plane"] = self.support_plane.as_array()
         if len(self.obstacle_keys):
             arrays["obstacle_keys"] = self.obstacle_keys
         np.savez(buf, **arrays)
@@ -262,7 +260,7 @@ class CompletionStream:
             stream._seen_bounds = z["seen_bounds"] if "seen_bounds" in z else None
             if "observed" in z:
                 stream._observed = G.VoxelGrid.unpack(z["observed"].tobytes())
-            stream.support_plane = z["support_plane"] if "support_plane" in z else None
+            stream.support_plane = _plane(z)
             if "obstacle_keys" in z:
                 stream.obstacle_keys = z["obstacle_keys"]
             # states stored before "seen" existed: seen once a grid was fitted
@@ -270,19 +268,16 @@ class CompletionStream:
         return stream
 
 
-def stored_support_plane(data: bytes) -> np.ndarray | None:
+def stored_support_plane(data: bytes) -> SupportPlane | None:
     """The support plane (world frame) kept in a stream state (:meth:`CompletionStream.to_bytes`),
     read without a model; None when the stream has none."""
     with np.load(io.BytesIO(data), allow_pickle=False) as z:
-        return z["support_plane"] if "support_plane" in z else None
+        return _plane(z)
 
 
-def _unit_plane(plane) -> np.ndarray:
-    """[nx, ny, nz, d] with |n| = 1, checked as everywhere else
-    (:class:`grasp_client.wire.SupportPlane`)."""
-    from grasp_client.wire import SupportPlane
-
-    return SupportPlane.from_values(np.asarray(plane, dtype=np.float64).reshape(-1)).as_array()
+def _plane(arrays) -> SupportPlane | None:
+    """The stored plane of a loaded state (checked again: the bytes came from storage)."""
+    return SupportPlane.from_values(arrays["support_plane"]) if "support_plane" in arrays else None
 
 
 def _logit(p: float) -> float:

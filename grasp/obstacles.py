@@ -37,6 +37,7 @@ import trimesh
 from scipy.spatial import cKDTree
 
 from completion.grid import OBSTACLE_PITCH_M, voxel_keys
+from grasp_client.wire import SupportPlane
 from hands.barrett import BH8_282, FINGERS, LINK_NAMES, BarrettParams, HandKinematics
 from hands.barrett.kinematics import joints_from_dofs
 
@@ -110,9 +111,9 @@ def _checked(points: np.ndarray, pitch: float) -> tuple[np.ndarray, float]:
     return points, float(pitch)
 
 
-def seen_others(others: np.ndarray, target: np.ndarray, plane: np.ndarray) -> np.ndarray:
+def seen_others(others: np.ndarray, target: np.ndarray, plane: SupportPlane) -> np.ndarray:
     """Which of a view's other points (not the target's, world frame, (m, 3)) are obstacles:
-    above the table ``plane`` ((4,), n·x + d = 0, n up) by :data:`ABOVE_TABLE_M`, within
+    above the table ``plane`` (world frame) by :data:`ABOVE_TABLE_M`, within
     :data:`REACH_M` of the target's points ``target`` ((n, 3), world) along the table, and not
     within :data:`TARGET_MARGIN_M` of them. One rule for the service's views and the
     evaluation's (:func:`grasp.evaluate.clutter.seen_obstacles`)."""
@@ -120,13 +121,12 @@ def seen_others(others: np.ndarray, target: np.ndarray, plane: np.ndarray) -> np
     target = np.asarray(target, dtype=np.float64).reshape(-1, 3)
     if len(others) == 0 or len(target) == 0:
         return others[:0]
-    normal, offset = np.asarray(plane[:3], float), float(plane[3])
-    others = others[others @ normal + offset > ABOVE_TABLE_M]
+    others = others[plane.height(others) > ABOVE_TABLE_M]
     if len(others) == 0:
         return others
 
     def flat(p: np.ndarray) -> np.ndarray:  # projected onto the table
-        return p - np.outer(p @ normal + offset, normal)
+        return p - np.outer(plane.height(p), plane.normal)
 
     along, _ = cKDTree(flat(target)).query(flat(others), distance_upper_bound=REACH_M)
     others = others[np.isfinite(along)]

@@ -27,7 +27,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from completion.grid import plane_in_frame, transform_points
+from completion.grid import transform_points
+from grasp_client.wire import SupportPlane
 from service.inputs import DecodedView, InputError
 
 #: OpenGL's camera frame (x right, y up, z backward) against OpenCV's (x right, y down, z forward).
@@ -65,10 +66,10 @@ class Previous:
     points_world: np.ndarray  # (n, 3)
 
 
-def check_view(view: DecodedView, plane: np.ndarray | None, previous: Previous | None,
+def check_view(view: DecodedView, plane: SupportPlane | None, previous: Previous | None,
                limits: FrameChecks = DEFAULT_CHECKS) -> None:
     """Refuse ``view`` (:class:`InputError`) when its camera pose or the support plane
-    (``plane``: the view's or the session's, world frame, unit normal) contradict what its
+    (``plane``: the view's or the session's, world frame) contradict what its
     depth or points show, or what ``previous`` showed."""
     pose = view.camera_to_world
     if pose is None or view.points is None or not len(view.points):
@@ -103,14 +104,12 @@ def _problem(points, background, pose, plane, previous, limits) -> tuple[tuple, 
     """What is inconsistent, as (field, what), or None."""
     world = transform_points(points, pose)
     if plane is not None:
-        n, d = plane[:3], float(plane[3])
-        camera = float(n @ pose[:3, 3] + d)
+        camera = float(plane.height(pose[:3, 3]))
         if camera < -limits.plane_tolerance_m:
             return (("body", "camera_pose"),
                     f"camera_pose and support_plane put the camera {-camera:.3g} m below the "
                     "table")
-        heights = world @ n + d
-        low = float(np.percentile(heights, 2))
+        low = float(np.percentile(plane.height(world), 2))
         if low < -limits.plane_tolerance_m:
             return (("body", "support_plane"),
                     f"the object's points lie down to {-low:.3g} m below the support plane")
@@ -139,7 +138,7 @@ def _table_seen(background, pose, plane, limits) -> bool | None:
     background to tell)."""
     if background is None or len(background) < 50:
         return None
-    heights = transform_points(background, pose) @ plane[:3] + float(plane[3])
+    heights = plane.height(transform_points(background, pose))
     share = float(np.mean(np.abs(heights) <= limits.plane_tolerance_m))
     lo, hi = np.percentile(heights, [5, 95])
     chance = min(1.0, 2.0 * limits.plane_tolerance_m / max(float(hi - lo), 1e-9))
@@ -150,22 +149,21 @@ def _table_seen(background, pose, plane, limits) -> bool | None:
 def _likely_mistake(view: DecodedView, plane, previous, limits) -> str | None:
     """The first common mistake whose undoing makes the view consistent, as advice."""
     pose = view.camera_to_world
-    flat = None if plane is None else np.asarray(plane, dtype=np.float64)
     alternatives: list[tuple[str, Callable[[], tuple]]] = [
         ("camera_pose looks like world→camera: send camera→world (its inverse)",
-         lambda: (np.linalg.inv(pose), flat)),
+         lambda: (np.linalg.inv(pose), plane)),
         ("camera_pose looks like an OpenGL camera (y up, z backward): the camera frame is "
          "OpenCV's (x right, y down, z forward); multiply it by diag(1, -1, -1, 1) on the right",
-         lambda: (pose @ OPENGL_TO_OPENCV, flat)),
+         lambda: (pose @ OPENGL_TO_OPENCV, plane)),
     ]
-    if flat is not None:
+    if plane is not None:
         alternatives += [
             ("support_plane's normal points down: n points up, from the table toward the object "
-             "(send -n, -d)", lambda: (pose, -flat)),
+             "(send -n, -d)", lambda: (pose, SupportPlane(-plane.normal, -plane.offset))),
             ("support_plane's d has the wrong sign: n·x + d = 0 for points x on the table",
-             lambda: (pose, flat * [1.0, 1.0, 1.0, -1.0])),
+             lambda: (pose, SupportPlane(plane.normal, -plane.offset))),
             ("support_plane looks like it is in the camera frame: send it in the world frame",
-             lambda: (pose, _camera_plane_in_world(flat, pose))),
+             lambda: (pose, plane.transformed(np.linalg.inv(pose)))),
         ]
     for advice, undo in alternatives:
         other_pose, other_plane = undo()
@@ -174,7 +172,3 @@ def _likely_mistake(view: DecodedView, plane, previous, limits) -> str | None:
             return advice
     return None
 
-
-def _camera_plane_in_world(plane: np.ndarray, camera_to_world: np.ndarray) -> np.ndarray:
-    """The world plane that ``plane``, read in the camera frame, is."""
-    return plane_in_frame(plane, np.linalg.inv(camera_to_world))

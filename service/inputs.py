@@ -26,7 +26,7 @@ from completion.grid import (
 
 # MAX_COORDINATE_M: the largest |coordinate| (metres) accepted in points, depth and transforms:
 # far beyond any depth camera, small enough that fitting a grid cannot overflow
-from grasp_client.wire import MAX_COORDINATE_M, object_pixels, transform
+from grasp_client.wire import MAX_COORDINATE_M, SupportPlane, object_pixels, transform
 from service.schemas import DepthIn, GridIn, ViewIn
 
 #: Voxel pitch (metres) a client-made grid may have: 0.1 mm to 10 m.
@@ -58,7 +58,7 @@ class DecodedView:
     points: np.ndarray | None = None  # (n, 3) float64, camera frame, metres
     grid: VoxelGrid | None = None
     camera_to_world: np.ndarray | None = None  # (4, 4) float64
-    support_plane: np.ndarray | None = None  # (4,) world frame, kept by the session
+    support_plane: SupportPlane | None = None  # world frame, kept by the session
     background: np.ndarray | None = None  # (m, 3) some of a masked depth image's other pixels
     # (k, 3) camera frame: the pixels that may be obstacles (outside the mask, or the
     # obstacle_mask's), one about every OBSTACLE_PITCH_M at their depth; None: none sent
@@ -89,14 +89,11 @@ def decode_view(
     this image.
     """
     pose = view.camera_pose  # checked rigid by its type (grasp_client.wire.rigid_pose)
-    plane = None
-    if view.support_plane is not None:
-        if pose is None:
-            raise InputError(("body", "support_plane"),
-                             "support_plane is in the world frame: it needs this view's "
-                             "camera_pose")
-        plane = view.support_plane.as_array()
-    posed = {"camera_to_world": pose, "support_plane": plane, "check_frames": view.check_frames}
+    if view.support_plane is not None and pose is None:
+        raise InputError(("body", "support_plane"),
+                         f"{SupportPlane.NEEDS_POSES} (this view has no camera_pose)")
+    posed = {"camera_to_world": pose, "support_plane": view.support_plane,
+             "check_frames": view.check_frames}
     if view.points is not None:
         if not view.points:
             raise InputError(("body", "points"), "points is empty: send the object's observed "

@@ -143,7 +143,7 @@ def clutter_views(index: int, seed: int, views: int) -> list[dict]:
     (the target 1, the neighbours 2, the rest 0), its camera pose, the table with the first.
     The scene has 4 views; more are its pan again."""
     from completion.render import Renderer
-    from grasp.evaluate.benchmark import TABLE
+    from completion.scenes import TABLE_PLANE
     from grasp.evaluate.clutter import clutter_scene
     from grasp_client.wire import depth_png16_mm, intrinsics_field
 
@@ -162,7 +162,7 @@ def clutter_views(index: int, seed: int, views: int) -> list[dict]:
                                                        "cy": k.cy}),
                        "mask": _label_png(labels),
                        "object_label": 1, "camera_pose": scene.cameras[t].tolist()})
-    bodies[0]["support_plane"] = TABLE.tolist()
+    bodies[0]["support_plane"] = TABLE_PLANE.as_array().tolist()
     return bodies
 
 

@@ -24,6 +24,7 @@ from completion.grid import VoxelGrid, transform_points
 from completion.mesh import grid_to_mesh
 from completion.stream import Completion, CompletionStream, ViewResult
 from grasp.obstacles import seen_others
+from grasp_client.wire import SupportPlane
 from service.frames import DEFAULT_CHECKS, FrameChecks, Previous, check_view
 from service.inputs import DecodedView, InputError
 from service.store import ConcurrentUpdate, SessionRecord, Store
@@ -58,7 +59,7 @@ class Snapshot:
     completion: Completion
     camera_to_world: np.ndarray | None  # (4, 4) of the latest view, when given
     observed: np.ndarray  # (n, 3) the latest view's observed voxel centres
-    support_plane: np.ndarray | None = None  # (4,) world frame, when the session keeps one
+    support_plane: SupportPlane | None = None  # world frame, when the session keeps one
     obstacles: np.ndarray | None = None  # (k, 3) obstacle voxel centres, the same camera frame
 
 
@@ -145,8 +146,6 @@ class Pipeline:
             seen = stream.observed_points()
             previous = Previous(stream.camera_to_world,
                                 transform_points(seen, stream.camera_to_world))
-        if plane is not None:
-            plane = np.asarray(plane, dtype=np.float64) / np.linalg.norm(plane[:3])
         check_view(view, plane, previous, self.frame_checks)
 
     def _stream(self, record: SessionRecord) -> CompletionStream:
@@ -157,22 +156,19 @@ class Pipeline:
             )
         return CompletionStream.from_bytes(self.model, record.state)
 
-    def set_support_plane(self, session_id: str, plane: np.ndarray) -> None:
+    def set_support_plane(self, session_id: str, plane: SupportPlane) -> None:
         """Keep ``plane`` (world frame) with the session from now on (the caller holds its lock,
         as for a view); nothing is written when the session already keeps the same plane."""
         for _ in range(UPDATE_ATTEMPTS):
             record = self.store.get(session_id)
             stream = self._stream(record)
             before = stream.support_plane
-            if stream.views and stream.camera_to_world is None:
-                raise InputError(("query", "support_plane"),
-                                 "support_plane is in the world frame: it needs the views' "
-                                 "camera_pose (the latest view came without one)")
             try:
                 stream.set_support_plane(plane)
-            except ValueError as exc:
+            except ValueError as exc:  # no camera poses
                 raise InputError(("query", "support_plane"), str(exc)) from exc
-            if before is not None and np.allclose(before, stream.support_plane, atol=1e-12):
+            if before is not None and np.allclose(before.as_array(), plane.as_array(),
+                                                  atol=1e-12):
                 return
             try:
                 self.store.update(record, state=stream.to_bytes(), views=stream.views,

@@ -203,13 +203,11 @@ async def plan_session(
         except ValueError as exc:
             raise InputError(("query", "support_plane"), str(exc)) from None
         async with services.exclusive(session_id):  # the session keeps it from now on
-            await services.infer(services.pipeline.set_support_plane, session_id,
-                                 plane.as_array())
+            await services.infer(services.pipeline.set_support_plane, session_id, plane)
     snapshot, mesh, timing = await services.infer(services.pipeline.grasp_mesh, session_id)
     plane = None
     if snapshot.support_plane is not None:  # into the latest camera frame
-        kept = snapshot.support_plane
-        plane = SupportPlane(kept[:3], float(kept[3])).transformed(snapshot.camera_to_world)
+        plane = snapshot.support_plane.transformed(snapshot.camera_to_world)
     problem = too_large(mesh)
     if problem is not None:  # nothing the hand can close on: say so, plan nothing
         timing |= {"planning": 0.0, "waiting": 0.0, "total": (time.perf_counter() - start) * 1e3}
@@ -242,7 +240,7 @@ async def get_session(session_id: PathId, services: ServicesDep) -> SessionOut:
         created=datetime.fromtimestamp(record.created, UTC),
         updated=datetime.fromtimestamp(record.updated, UTC),
         expires=datetime.fromtimestamp(record.updated + ttl, UTC),
-        support_plane=None if plane is None else SupportPlane(plane[:3], float(plane[3])),
+        support_plane=plane,
     )
 
 

@@ -10,9 +10,8 @@ import numpy as np
 import pytest
 from service_helpers import Server
 
-from completion.grid import plane_in_frame
 from grasp_client import GraspClient, InvalidRequest
-from grasp_client.wire import b64, depth_f32_m, png_bytes
+from grasp_client.wire import SupportPlane, b64, depth_f32_m, png_bytes
 
 TABLE_Z = 0.16  # the world's table lies at z = 0.16 m, so that d's sign matters
 PLANE = (0.0, 0.0, 1.0, -TABLE_Z)
@@ -53,7 +52,8 @@ MISTAKES = {
     "world→camera": ({"pose": np.linalg.inv}, "", "world→camera"),
     "OpenGL camera": ({"pose": lambda p: p @ np.diag([1.0, -1.0, -1.0, 1.0])}, "", "OpenGL"),
     "plane in the camera frame": ({"plane": lambda p, pose: tuple(
-        plane_in_frame(np.array(p), pose))}, "support_plane", "in the camera frame"),
+        SupportPlane(p[:3], p[3]).transformed(pose).as_array())},
+        "support_plane", "in the camera frame"),
     "plane's d with the wrong sign": ({"plane": lambda p, pose: (*p[:3], -p[3])},
                                       "support_plane", "wrong sign"),
     "plane's normal down": ({"plane": lambda p, pose: tuple(-np.array(p))}, "camera_pose",

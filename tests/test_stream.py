@@ -8,6 +8,7 @@ from completion.config import ModelConfig
 from completion.grid import GRID_SHAPE, VoxelGrid
 from completion.model import build_model
 from completion.stream import CompletionStream, NoObjectError
+from grasp_client.wire import SupportPlane
 
 
 def test_a_view_without_points_carries_the_grid_into_the_new_camera_frame():
@@ -88,9 +89,9 @@ def test_a_support_plane_cuts_every_completion_voxel_below_it():
     rng = np.random.default_rng(3)
     for trial in range(6):
         stream = CompletionStream(model, threshold=0.3)
-        table = [0.0, 0.0, 2.0, -2 * rng.uniform(-0.03, 0.03)]  # not normalised on purpose
+        table = SupportPlane([0.0, 0.0, 2.0], -2 * rng.uniform(-0.03, 0.03))  # normalised
         stream.set_support_plane(table)
-        np.testing.assert_allclose(stream.support_plane[:3], [0, 0, 1])
+        np.testing.assert_allclose(stream.support_plane.normal, [0, 0, 1])
         for _ in range(2):
             camera = _posed_camera(rng)
             world = rng.normal(scale=0.04, size=(300, 3))  # a blob straddling the table top
@@ -99,12 +100,12 @@ def test_a_support_plane_cuts_every_completion_voxel_below_it():
         c = stream.completion()
         centres = G.transform_points(c.voxel_grid().points(), camera)
         assert len(centres) == result.occupied_voxels > 0, trial
-        assert (centres[:, 2] >= stream.support_plane[3] * -1 - 1e-9).all(), trial
+        assert (centres[:, 2] >= -stream.support_plane.offset - 1e-9).all(), trial
         # without the plane the same state reaches below it: the cut did the work
         plain = CompletionStream.from_bytes(model, stream.to_bytes())
         plain.support_plane = None
         below = G.transform_points(plain.completion().voxel_grid().points(), camera)[:, 2]
-        assert (below < -stream.support_plane[3]).any(), trial
+        assert (below < -table.offset).any(), trial
 
 
 def test_the_support_plane_is_kept_with_the_state_and_needs_camera_poses():
@@ -114,21 +115,22 @@ def test_the_support_plane_is_kept_with_the_state_and_needs_camera_poses():
     points = np.random.default_rng(4).normal(scale=0.02, size=(50, 3)) + [0, 0, 0.5]
     stream = CompletionStream(model)
     stream.add_view(points=points)  # no camera pose
+    floor = SupportPlane([0, 0, 1], 0.0)
     with pytest.raises(ValueError, match="camera poses"):
-        stream.set_support_plane([0, 0, 1, 0])
-    with pytest.raises(ValueError, match="non-zero normal"):
-        CompletionStream(model).set_support_plane([0, 0, 0, 1])
+        stream.set_support_plane(floor)
     posed = CompletionStream(model)
     posed.add_view(points=points, camera_to_world=np.eye(4))
-    posed.set_support_plane([0, 0, 1, -0.1])
+    posed.set_support_plane(SupportPlane([0, 0, 1], -0.1))
     assert stored_support_plane(stream.to_bytes()) is None
-    np.testing.assert_array_equal(stored_support_plane(posed.to_bytes()), [0, 0, 1, -0.1])
+    np.testing.assert_array_equal(stored_support_plane(posed.to_bytes()).as_array(),
+                                  [0, 0, 1, -0.1])
     restored = CompletionStream.from_bytes(model, posed.to_bytes())
-    np.testing.assert_array_equal(restored.support_plane, [0, 0, 1, -0.1])
-    with pytest.raises(ValueError, match="needs its camera pose"):
+    np.testing.assert_array_equal(restored.support_plane.as_array(), [0, 0, 1, -0.1])
+    with pytest.raises(ValueError, match="needs its pose"):
         restored.add_view(points=points)
-    with pytest.raises(ValueError, match="needs its camera pose"):
-        CompletionStream(model).add_view(points=points, support_plane=[0, 0, 1, 0])
+    with pytest.raises(ValueError, match="needs its pose"):
+        CompletionStream(model).add_view(points=points, support_plane=floor)
     given = CompletionStream(model)
-    given.add_view(points=points, camera_to_world=np.eye(4), support_plane=[0, 0, 3, 0.3])
-    np.testing.assert_allclose(given.support_plane, [0, 0, 1, 0.1])
+    given.add_view(points=points, camera_to_world=np.eye(4),
+                   support_plane=SupportPlane([0, 0, 3], 0.3))
+    np.testing.assert_allclose(given.support_plane.as_array(), [0, 0, 1, 0.1])

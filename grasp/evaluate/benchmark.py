@@ -34,6 +34,7 @@ import trimesh
 
 from completion import grid as G
 from completion.objects import load_object, object_ids
+from completion.scenes import TABLE_PLANE
 
 BENCHMARK_ROWS: tuple[str, ...] = (
     "true_mesh",
@@ -60,7 +61,6 @@ ROW_SOURCES = {
 #: one is chosen (``plan(..., verify=N)``, :mod:`grasp.verify`).
 VERIFIED_ROWS = tuple(row for row in BENCHMARK_ROWS if row.endswith("_verified"))
 VIEWS = 4
-TABLE = np.array([0.0, 0.0, 1.0, 0.0])  # the world plane z = 0, n up
 
 
 def benchmark_objects(count: int, seed: int) -> list[str]:
@@ -147,7 +147,7 @@ def completion_mesh(scene: Scene, source: str, views: int, models: dict):
     seen = []
     for t in range(views):
         stream.add_view(depth=scene.depth[t], intrinsics=scene.intrinsics, mask=scene.mask[t],
-                        camera_to_world=scene.cameras[t], support_plane=TABLE)
+                        camera_to_world=scene.cameras[t], support_plane=TABLE_PLANE)
         if source == "fusion":  # its own points; the other rows need only the stream's grid
             points = G.depth_to_points(scene.depth[t], scene.intrinsics, scene.mask[t])
             seen.append(G.transform_points(points, scene.cameras[t]))
@@ -158,7 +158,7 @@ def completion_mesh(scene: Scene, source: str, views: int, models: dict):
     probabilities, threshold = c.probabilities, c.threshold
     if source == "fusion":  # every point seen so far, in the last view's grid, cut the same way
         occupied = fuse(seen, c.grid_to_camera, camera)
-        occupied &= ~G.voxels_below_plane(c.grid_to_camera, G.plane_in_frame(TABLE, camera))
+        occupied &= ~G.voxels_below_plane(c.grid_to_camera, TABLE_PLANE.transformed(camera))
         probabilities, threshold = occupied.astype(np.float32), 0.5
     try:
         return grid_to_mesh(probabilities, c.grid_to_camera, threshold=threshold), camera
@@ -166,7 +166,7 @@ def completion_mesh(scene: Scene, source: str, views: int, models: dict):
         return None, camera
 
 
-def grasp_kind(grasp, up: np.ndarray = TABLE[:3]) -> str:
+def grasp_kind(grasp, up: np.ndarray = TABLE_PLANE.normal) -> str:
     """"table pinch" (:mod:`grasp.pinch`), or "power" (the palm touches) or "fingertip", "from
     above" (within 45° of straight down) or "from the side"."""
     from grasp.pinch import TABLE_PINCH
@@ -192,9 +192,7 @@ def run_object(scene: Scene, models: dict, rows, *, candidates: int, seed: int,
     the true object, runs after it with its own seed."""
     from grasp.physics import lift_test
     from grasp.planner import plan
-    from grasp.table import SupportPlane
 
-    table = SupportPlane(TABLE[:3], float(TABLE[3]))
     out = {}
     for row in rows:
         source, views = ROW_SOURCES[row]
@@ -207,13 +205,14 @@ def run_object(scene: Scene, models: dict, rows, *, candidates: int, seed: int,
             continue
         tries, timings = (verify if row in VERIFIED_ROWS else 0), {}
         grasps = plan(mesh, n_candidates=candidates, seed=seed, top_k=1,
-                      support_plane=table.transformed(camera), verify=tries, timings=timings)
+                      support_plane=TABLE_PLANE.transformed(camera), verify=tries, timings=timings)
         if not grasps or not grasps[0].success:
             why = grasps[0].reason if grasps else "no candidate"
             out[row] = {"held": False, "reason": f"no grasp planned: {why}"}
             continue
         world = dataclasses.replace(grasps[0], palm_pose=camera @ grasps[0].palm_pose)
-        result = lift_test(scene.mesh, world, seed=seed, support_plane=table, approach="guarded")
+        result = lift_test(scene.mesh, world, seed=seed, support_plane=TABLE_PLANE,
+                           approach="guarded")
         p = world.hold_probability
         out[row] = {
             "held": bool(result.success), "reason": result.reason, "kind": grasp_kind(world),

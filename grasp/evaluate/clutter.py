@@ -32,7 +32,8 @@ import trimesh
 
 from completion import grid as G
 from completion.objects import load_object
-from grasp.evaluate.benchmark import TABLE, VIEWS, benchmark_objects, grasp_kind, render_pan
+from completion.scenes import TABLE_PLANE
+from grasp.evaluate.benchmark import VIEWS, benchmark_objects, grasp_kind, render_pan
 from grasp.obstacles import Obstacles, seen_others
 
 CLUTTER_ROWS: tuple[str, ...] = ("true_meshes", "mvp_4views_obstacles", "mvp_4views_ignoring")
@@ -197,7 +198,7 @@ def seen_obstacles(scene: ClutterScene, views: int = VIEWS) -> Obstacles:
                                     scene.cameras[t])
         target = G.transform_points(G.depth_to_points(scene.depth[t], scene.intrinsics,
                                                       scene.mask[t]), scene.cameras[t])
-        kept.append(seen_others(others, target, TABLE))
+        kept.append(seen_others(others, target, TABLE_PLANE))
     return Obstacles.from_points(np.concatenate(kept) if kept else np.zeros((0, 3)))
 
 
@@ -218,9 +219,7 @@ def run_scene(scene: ClutterScene, models: dict, rows, *, candidates: int, seed:
     from grasp.evaluate.benchmark import completion_mesh
     from grasp.physics import lift_test
     from grasp.planner import plan
-    from grasp.table import SupportPlane
 
-    table = SupportPlane(TABLE[:3], float(TABLE[3]))
     target_scene = _as_benchmark_scene(scene)
     out, completed = {}, None
     for row in rows:
@@ -236,13 +235,13 @@ def run_scene(scene: ClutterScene, models: dict, rows, *, candidates: int, seed:
             out[row] = {"success": False, "held": False, "reason": "empty completion"}
             continue
         grasps = plan(mesh, n_candidates=candidates, seed=seed, top_k=1,
-                      support_plane=table.transformed(camera), obstacles=obstacles)
+                      support_plane=TABLE_PLANE.transformed(camera), obstacles=obstacles)
         if not grasps or not grasps[0].success:
             why = grasps[0].reason if grasps else "no candidate"
             out[row] = {"success": False, "held": False, "reason": f"no grasp planned: {why}"}
             continue
         world = dataclasses.replace(grasps[0], palm_pose=camera @ grasps[0].palm_pose)
-        result = lift_test(scene.target, world, seed=seed, support_plane=table,
+        result = lift_test(scene.target, world, seed=seed, support_plane=TABLE_PLANE,
                            approach="guarded", neighbours=scene.neighbours)
         knocked = disturbed(result)
         out[row] = {

@@ -145,6 +145,10 @@ class SupportPlane:
     normal: np.ndarray
     offset: float
 
+    #: The rule of a plane given with views, said the same way wherever it is broken (the
+    #: completion stream, the service): the views need their camera poses.
+    NEEDS_POSES: ClassVar[str] = ("a support plane is in the world frame: it needs the views' "
+                                  "camera poses")
     #: The text form "nx,ny,nz,d": four decimal numbers, finite as floats (at most 9 digits
     #: before the point, exponents of at most two digits, so 1e999 does not match); the
     #: lookahead asks for a non-zero digit in the normal.
