@@ -352,7 +352,7 @@ def _settings(paths: dict, **changes) -> ev.Settings:
         grasp_count=0,
         named=0,
         sensor=0,
-        overhead=0,
+        sizes=(("overhead", 0),),
         benchmark=0, clutter=0,  # the main table's rows are what these tests look at
         views=3,
         seed=7,

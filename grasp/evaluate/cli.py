@@ -19,6 +19,7 @@ from grasp.evaluate.pool import run_jobs
 from grasp.evaluate.report import markdown_report
 from grasp.evaluate.results import build_results
 from grasp.evaluate.runner import make_jobs
+from grasp.evaluate.tables import TABLES
 
 
 def _preset_help(field: str) -> str:
@@ -121,14 +122,12 @@ def build_parser() -> argparse.ArgumentParser:
         help="held-out named pybullet_data objects to evaluate (0 = none; "
         f"{_preset_help('named')})",
     )
-    p.add_argument(
-        "--overhead",
-        type=integer_at_least(0),
-        default=None,
-        metavar="N",
-        help="tabletop test sequences searched for overhead views (elevation ≥ 75°) for the "
-        f"share of the completion below the table (0 = none; {_preset_help('overhead')})",
-    )
+    for table in TABLES:  # the tables that declare their own size
+        if table.sizing is not None:
+            s = table.sizing
+            p.add_argument(f"--{table.name}", type=integer_at_least(0), default=None,
+                           metavar="N", help=f"{s.help} (0 = none; default {s.default}, "
+                           f"{s.quick} with --quick, {s.full} with --full)")
     p.add_argument(
         "--benchmark",
         type=integer_at_least(0),
@@ -276,8 +275,11 @@ def settings_from_args(args: argparse.Namespace, parser: argparse.ArgumentParser
     if "benchmark" in given and "verified" not in given:  # every object the benchmark names
         given["verified"] = given["benchmark"]
     sizes = dataclasses.replace(preset, **given)
+    own = tuple((t.name, t.sizing.preset(args.preset) if getattr(args, t.name) is None
+                 else getattr(args, t.name)) for t in TABLES if t.sizing is not None)
     return Settings(
         **dataclasses.asdict(sizes),
+        sizes=own,
         rows=tuple(args.models),
         model_paths=tuple(paths),
         prior_path=str(prior_path) if PRIOR in args.models else "",

@@ -90,9 +90,6 @@ FOLDER_TABLE = "objects"
 MAIN_TABLE = "main"
 #: The paper's five conditions seen through the sensor model (test split, Jaccard only).
 SENSOR_TABLE = "sensor"
-#: Tabletop sequences scored on their overhead views only (Jaccard, share below the table).
-OVERHEAD_TABLE = "overhead"
-OVERHEAD_MIN_ELEVATION_DEG = 75.0
 #: The grasp-success benchmark (:mod:`grasp.evaluate.benchmark`): one job per object.
 BENCHMARK_TABLE = "benchmark"
 #: A target among neighbours on a table (:mod:`grasp.evaluate.clutter`): one job per scene.
@@ -150,7 +147,6 @@ class Preset:
     # grasped); the train split grasps at most count
     physics_count: int  # of the grasped test ones, how many are lift-tested in pybullet
     sensor: int  # test sequences per condition seen with and without the sensor (SENSOR_TABLE)
-    overhead: int  # tabletop test sequences searched for overhead views (OVERHEAD_TABLE)
     benchmark: int  # objects of the grasp-success benchmark (BENCHMARK_TABLE)
     verified: int  # of those, how many also get the verified rows (grasps tried in physics)
     clutter: int  # scenes of the clutter table (CLUTTER_TABLE)
@@ -165,24 +161,24 @@ class Preset:
 PRESETS: dict[str, Preset] = {
     # ≈ 90 core-seconds: a smoke test of the whole chain (about a minute on two cores).
     "quick": Preset(count=2, named=3, candidates=8, grasp_count=2, physics_count=1, sensor=1,
-                    overhead=2, benchmark=1, verified=1, clutter=1),
+                    benchmark=1, verified=1, clutter=1),
     # The command with no arguments (timings in the README): 120 sequences (10 per condition
     # and split), all 80 single-object ones grasped with 24 candidates (the planner's 24
     # principal-axis poses) and 10 more test sequences per single-object condition grasped only
     # (20 grasps per test cell, so that one grasp cannot swing the joint error), 5 of them per
     # test cell lift-tested, 5 of the named objects (all 10
     # with --full or --named 10), the sensor table (5 test sequences per condition, on and off,
-    # Jaccard only), the overhead table (30 tabletop sequences searched; only those with a view
-    # from above are completed) and the grasp benchmark's 30 objects, 10 of them with the
-    # verified rows (each tries up to 4 grasps in 2 lift trials), and 4 clutter scenes: under
-    # 10 minutes on two cores (706 s measured before the sensor and overhead tables and the
-    # train split's lift tests were cut to these sizes).
+    # Jaccard only), the grasp benchmark's 30 objects, 10 of them with the verified rows (each
+    # tries up to 4 grasps in 2 lift trials), 4 clutter scenes, and the tables that size
+    # themselves (tables.base.Sizing), at their defaults: under 10 minutes on two cores (706 s
+    # measured before the sensor table, a table sized by itself and the train split's lift
+    # tests were cut to these sizes).
     "default": Preset(count=10, named=5, candidates=24, grasp_count=20, physics_count=5,
-                      sensor=5, overhead=30, benchmark=30, verified=10, clutter=4),
+                      sensor=5, benchmark=30, verified=10, clutter=4),
     # ≈ 4,500 core-seconds (about 40 minutes on two cores; use --workers on a bigger machine):
     # 50 sequences per cell and the planner's full 64 candidates.
     "full": Preset(count=50, named=10, candidates=64, grasp_count=50, physics_count=10,
-                   sensor=50, overhead=200, benchmark=100, verified=100, clutter=50),
+                   sensor=50, benchmark=100, verified=100, clutter=50),
 }
 
 
@@ -213,7 +209,6 @@ class Settings:
     grasp_count: int = PRESETS["default"].grasp_count
     physics_count: int = PRESETS["default"].physics_count
     named: int = PRESETS["default"].named
-    overhead: int = PRESETS["default"].overhead
     sensor: int = PRESETS["default"].sensor
     benchmark: int = PRESETS["default"].benchmark
     verified: int = PRESETS["default"].verified
@@ -228,6 +223,13 @@ class Settings:
     workers: int = 1
     ray: bool = False  # run the workers as Ray actors (completion.cluster)
     examples: bool = True
+    #: (table name, size) of the tables sized by their own option (:class:`grasp.evaluate.
+    #: tables.base.Sizing`); a table not named here has its default size
+    sizes: tuple[tuple[str, int], ...] = ()
+
+    def size(self, table: str, default: int) -> int:
+        """The size the run gives ``table`` (``default`` when it names none)."""
+        return dict(self.sizes).get(table, default)
 
     def __post_init__(self) -> None:
         unknown = [r for r in self.rows if r not in ROWS]
@@ -247,7 +249,6 @@ class Settings:
             "physics_count",
             "named",
             "sensor",
-            "overhead",
             "benchmark",
             "verified",
             "clutter",
@@ -260,6 +261,9 @@ class Settings:
             least = 1 if name in ("candidates", "benchmark_candidates", "samples", "workers") else 0
             if getattr(self, name) < least:
                 raise ValueError(f"{name} out of range: {getattr(self, name)}")
+        for table, size in self.sizes:
+            if size < 0:
+                raise ValueError(f"the {table} table's size out of range: {size}")
         if self.views < 2:
             raise ValueError(f"views must be >= 2, got {self.views}")
 
@@ -284,6 +288,8 @@ class Job:
 def config_dict(settings: Settings) -> dict:
     """results.json's ``config``: the settings as plain JSON."""
     d = asdict(settings)
+    del d["sizes"]
+    d |= dict(settings.sizes)  # each table's size under its name
     d["model_paths"] = dict(settings.model_paths)
     d["objects"] = list(settings.objects)
     d["fscore_fractions"] = [0.01, 0.02]

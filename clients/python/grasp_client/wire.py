@@ -148,7 +148,7 @@ class SupportPlane:
     #: The rule of a plane given with views, said the same way wherever it is broken (the
     #: completion stream, the service): the views need their camera poses.
     NEEDS_POSES: ClassVar[str] = ("a support plane is in the world frame: it needs the views' "
-                                  "camera poses")
+                                  "camera poses (camera_pose)")
     #: The text form "nx,ny,nz,d": four decimal numbers, finite as floats (at most 9 digits
     #: before the point, exponents of at most two digits, so 1e999 does not match); the
     #: lookahead asks for a non-zero digit in the normal.

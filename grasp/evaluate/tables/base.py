@@ -3,10 +3,28 @@ results.json and how it writes its part of results.md."""
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Any
 
 from grasp.evaluate.config import Job, Settings
 from grasp.evaluate.records import SequenceResult
+
+
+@dataclass(frozen=True)
+class Sizing:
+    """How a table with a size of its own is sized: the option ``--<name>`` (``help``: what it
+    counts) and its size per preset (``--quick``, the default, ``--full``); 0 leaves it out.
+    The command line (:mod:`grasp.evaluate.cli`) and the run's :class:`~grasp.evaluate.config.
+    Settings` (``sizes``, by the table's name) take it from here."""
+
+    help: str
+    quick: int
+    default: int
+    full: int
+
+    def preset(self, name: str) -> int:
+        """The size of preset ``name`` ("quick", "default" or "full")."""
+        return getattr(self, name)
 
 
 class Table:
@@ -18,6 +36,13 @@ class Table:
 
     name: str = ""
     section: str = "objects"
+    #: its own size (None: sized by the main table's options)
+    sizing: Sizing | None = None
+
+    def size(self, settings: Settings) -> int:
+        """How many jobs the run asks of it (its :attr:`sizing`): the run's size for its name,
+        else its default."""
+        return settings.size(self.name, self.sizing.default)
 
     def jobs(self, settings: Settings) -> list[Job]:
         return []

@@ -1,5 +1,5 @@
 """The overhead table: tabletop test sequences searched for views from above (elevation at least
-:data:`~grasp.evaluate.config.OVERHEAD_MIN_ELEVATION_DEG`), where a completion is most tempted
+:data:`OVERHEAD_MIN_ELEVATION_DEG`), where a completion is most tempted
 to reach under the table: Jaccard and the share of the completion below the table."""
 
 from __future__ import annotations
@@ -7,25 +7,25 @@ from __future__ import annotations
 from typing import Any
 
 from grasp.evaluate.cells import fmt, mean_or_none
-from grasp.evaluate.config import (
-    OVERHEAD_MIN_ELEVATION_DEG,
-    OVERHEAD_TABLE,
-    ROW_LABELS,
-    Job,
-    Settings,
-)
+from grasp.evaluate.config import ROW_LABELS, Job, Settings
 from grasp.evaluate.records import SequenceResult
-from grasp.evaluate.tables.base import Table
+from grasp.evaluate.tables.base import Sizing, Table
+
+OVERHEAD_TABLE = "overhead"
+#: A view counts as from above at this elevation (degrees) or more.
+OVERHEAD_MIN_ELEVATION_DEG = 75.0
 
 
 class OverheadTable(Table):
     name, section = OVERHEAD_TABLE, "jaccard"
+    sizing = Sizing("tabletop test sequences searched for overhead views (elevation ≥ 75°) for "
+                    "the share of the completion below the table", quick=2, default=30, full=200)
 
     def jobs(self, settings: Settings) -> list[Job]:
         if "tabletop" not in settings.conditions:
             return []
         return [Job(OVERHEAD_TABLE, "tabletop", "test", index, light=True)
-                for index in range(settings.overhead)]
+                for index in range(self.size(settings))]
 
     def run(self, evaluator: Any, job: Job) -> SequenceResult:
         """Scored only when a view is from above (searched, none: nothing reaches the table)."""
