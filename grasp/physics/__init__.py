@@ -12,7 +12,8 @@ says whether the object stays in the hand. One trial, in its own DIRECT pybullet
    shrunk by as much and the collision surface is the mesh's (a test checks it against the
    planner's contact). Without a table (the scenes float the object) a weak support, a constraint
    of at most the object's weight, keeps it from drifting while gravity is off and the hand closes;
-   with ``table=True`` it stands on a table with gravity on throughout.
+   with a ``support_plane`` it stands on that table (simulated in the plane's upright frame) with
+   gravity on throughout.
 2. **Hand**: the URDF from :mod:`hands.barrett.urdf` (implicit cylinders, so the palm is not padded
    either), free base, carried by a fixed constraint to the world whose target is moved every step
    (``changeConstraint``, at most ``hand_force``): the hand base is driven dynamically, so contacts
