@@ -38,6 +38,7 @@ import anyio.to_thread
 import numpy as np
 
 from grasp.defaults import AUTOGRASP_BUDGET
+from grasp_client.wire import SupportPlane
 from service import workers
 
 log = logging.getLogger(__name__)
@@ -51,8 +52,8 @@ class PlanRequest:
     """One plan, built once where it is asked for (``GET /grasp``) and passed whole to a worker:
     the mesh (vertices (v, 3), faces (f, 3), the completion's camera frame), the candidates and
     how many are autograsped (``budget``, :data:`grasp.defaults.AUTOGRASP_BUDGET` by default),
-    the seed, how many grasps come back, the table (a :class:`grasp.table.SupportPlane` in the
-    mesh's frame, or None), the obstacles (voxel centres (k, 3) in the mesh's frame, of the
+    the seed, how many grasps come back, the table (a :class:`grasp_client.wire.SupportPlane` in
+    the mesh's frame, or None), the obstacles (voxel centres (k, 3) in the mesh's frame, of the
     session's pitch :data:`completion.grid.OBSTACLE_PITCH_M`, or None) and how many of the best
     grasps to lift-test before answering (:mod:`grasp.verify`)."""
 
@@ -62,7 +63,7 @@ class PlanRequest:
     seed: int
     top_k: int
     budget: int = AUTOGRASP_BUDGET
-    support_plane: object = None
+    support_plane: SupportPlane | None = None
     obstacles: np.ndarray | None = None
     verify: int = 0
 
