@@ -300,7 +300,7 @@ def test_same_seed_same_numbers(tiny_run, tmp_path):
         grasp_count=0,
         named=0,
         sensor=0,
-        benchmark=0, clutter=0,  # one cell of the main table is what is compared
+        benchmark=0, sizes=(("clutter", 0),),  # one cell of the main table is compared
         views=3,
         seed=3,
         candidates=2,
@@ -352,8 +352,8 @@ def _settings(paths: dict, **changes) -> ev.Settings:
         grasp_count=0,
         named=0,
         sensor=0,
-        sizes=(("overhead", 0),),
-        benchmark=0, clutter=0,  # the main table's rows are what these tests look at
+        sizes=(("overhead", 0), ("clutter", 0)),
+        benchmark=0,  # the main table's rows are what these tests look at
         views=3,
         seed=7,
         candidates=2,

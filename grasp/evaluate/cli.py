@@ -148,15 +148,6 @@ def build_parser() -> argparse.ArgumentParser:
         f"no --verified: all N; {_preset_help('verified')})",
     )
     p.add_argument(
-        "--clutter",
-        type=integer_at_least(0),
-        default=None,
-        metavar="N",
-        help="scenes of the clutter table (a target among 2-5 neighbours on a table, planned "
-        "with the seen neighbours as obstacles and without; lift-tested with the neighbours; "
-        f"0 = none; {_preset_help('clutter')})",
-    )
-    p.add_argument(
         "--benchmark-verify",
         type=integer_at_least(1),
         default=4,

@@ -149,7 +149,6 @@ class Preset:
     sensor: int  # test sequences per condition seen with and without the sensor (SENSOR_TABLE)
     benchmark: int  # objects of the grasp-success benchmark (BENCHMARK_TABLE)
     verified: int  # of those, how many also get the verified rows (grasps tried in physics)
-    clutter: int  # scenes of the clutter table (CLUTTER_TABLE)
 
 
 #: Sizes per preset, from measured costs on one core (process time): generating a sequence
@@ -161,7 +160,7 @@ class Preset:
 PRESETS: dict[str, Preset] = {
     # ≈ 90 core-seconds: a smoke test of the whole chain (about a minute on two cores).
     "quick": Preset(count=2, named=3, candidates=8, grasp_count=2, physics_count=1, sensor=1,
-                    benchmark=1, verified=1, clutter=1),
+                    benchmark=1, verified=1),
     # The command with no arguments (timings in the README): 120 sequences (10 per condition
     # and split), all 80 single-object ones grasped with 24 candidates (the planner's 24
     # principal-axis poses) and 10 more test sequences per single-object condition grasped only
@@ -169,16 +168,16 @@ PRESETS: dict[str, Preset] = {
     # test cell lift-tested, 5 of the named objects (all 10
     # with --full or --named 10), the sensor table (5 test sequences per condition, on and off,
     # Jaccard only), the grasp benchmark's 30 objects, 10 of them with the verified rows (each
-    # tries up to 4 grasps in 2 lift trials), 4 clutter scenes, and the tables that size
-    # themselves (tables.base.Sizing), at their defaults: under 10 minutes on two cores (706 s
+    # tries up to 4 grasps in 2 lift trials), and the tables that size themselves
+    # (tables.base.Sizing), at their defaults: under 10 minutes on two cores (706 s
     # measured before the sensor table, a table sized by itself and the train split's lift
     # tests were cut to these sizes).
     "default": Preset(count=10, named=5, candidates=24, grasp_count=20, physics_count=5,
-                      sensor=5, benchmark=30, verified=10, clutter=4),
+                      sensor=5, benchmark=30, verified=10),
     # ≈ 4,500 core-seconds (about 40 minutes on two cores; use --workers on a bigger machine):
     # 50 sequences per cell and the planner's full 64 candidates.
     "full": Preset(count=50, named=10, candidates=64, grasp_count=50, physics_count=10,
-                   sensor=50, benchmark=100, verified=100, clutter=50),
+                   sensor=50, benchmark=100, verified=100),
 }
 
 
@@ -212,7 +211,6 @@ class Settings:
     sensor: int = PRESETS["default"].sensor
     benchmark: int = PRESETS["default"].benchmark
     verified: int = PRESETS["default"].verified
-    clutter: int = PRESETS["default"].clutter
     benchmark_verify: int = 4  # grasps the verified rows try at most (plan(..., verify=N))
     benchmark_candidates: int = 64  # planner candidates of the benchmark's grasps
     objects: tuple[str, ...] = ()  # file: ids of --objects DIR
@@ -251,7 +249,6 @@ class Settings:
             "sensor",
             "benchmark",
             "verified",
-            "clutter",
             "benchmark_verify",
             "benchmark_candidates",
             "candidates",

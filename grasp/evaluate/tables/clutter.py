@@ -12,7 +12,7 @@ from grasp.evaluate.benchmark import _reason_kind, wilson
 from grasp.evaluate.cells import fmt
 from grasp.evaluate.config import CLUTTER_TABLE, GRASP_SUCCESS, Job, Settings
 from grasp.evaluate.records import SequenceResult, StageClock, Timings, key_seed
-from grasp.evaluate.tables.base import Table
+from grasp.evaluate.tables.base import Sizing, Table
 
 LABELS = {
     "true_meshes": "True meshes (target and neighbours known)",
@@ -23,9 +23,13 @@ LABELS = {
 
 class ClutterTable(Table):
     name, section = CLUTTER_TABLE, "grasps"
+    sizing = Sizing("scenes of the clutter table (a target among 2-5 neighbours on a table, "
+                    "planned with the seen neighbours as obstacles and without; lift-tested with "
+                    "the neighbours)", quick=1, default=4, full=50)
 
     def jobs(self, settings: Settings) -> list[Job]:
-        return [Job(CLUTTER_TABLE, "tabletop", "test", index) for index in range(settings.clutter)]
+        return [Job(CLUTTER_TABLE, "tabletop", "test", index)
+                for index in range(self.size(settings))]
 
     def run(self, evaluator: Any, job: Job) -> SequenceResult:
         s = evaluator.settings
