@@ -1,188 +1,26 @@
-"""The SQLite session store (the embedded default), the store the settings name, session locks.
-
-:class:`SessionStore` implements the :class:`service.store.Store` interface on one SQLite file
-(one row per session); :func:`open_store` picks it, or
-:class:`service.redis_store.RedisSessionStore` for ``GRASP_STORE_URL``, from the settings.
-SQLite runs in WAL mode; a committed view survives a killed process.
-
-Writes are compare-and-swap on the view count (see :mod:`service.store`); within one process
-:class:`SessionLocks` queues the ``POST /views`` of a session so that none has to retry.
+"""The store the settings name, and session locks: :func:`open_store` picks
+:class:`service.sqlite_store.SQLiteSessionStore` (one SQLite file, the embedded default) or
+:class:`service.redis_store.RedisSessionStore` for ``GRASP_STORE_URL``. Writes are compare-and-swap
+on the view count (see :mod:`service.store`); within one process :class:`SessionLocks` queues the
+``POST /views`` of a session so that none has to retry.
 """
 
 from __future__ import annotations
 
 import asyncio
 import logging
-import sqlite3
-import time
-from collections.abc import AsyncIterator, Callable
-from contextlib import asynccontextmanager, closing
-from pathlib import Path
+from collections.abc import AsyncIterator
+from contextlib import asynccontextmanager
 from typing import TYPE_CHECKING
 
 from service.redis_store import RedisSessionStore
-from service.store import ConcurrentUpdate, SessionNotFound, SessionRecord, Store
+from service.sqlite_store import SQLiteSessionStore
+from service.store import Store
 
 if TYPE_CHECKING:
     from service.settings import Settings
 
 log = logging.getLogger(__name__)
-
-_SCHEMA = """
-CREATE TABLE IF NOT EXISTS sessions (
-    id TEXT PRIMARY KEY,
-    model TEXT NOT NULL,
-    created REAL NOT NULL,
-    updated REAL NOT NULL,
-    views INTEGER NOT NULL,
-    object_seen INTEGER NOT NULL,
-    state BLOB NOT NULL
-);
-CREATE INDEX IF NOT EXISTS sessions_updated ON sessions (updated);
-CREATE TABLE IF NOT EXISTS answers (
-    key TEXT PRIMARY KEY,
-    answer TEXT NOT NULL,
-    expires REAL NOT NULL
-);
-"""
-
-
-#: SQL condition of an expired session, with the two limits of :meth:`SessionStore._limits`.
-_EXPIRED = "((object_seen = 1 AND updated < ?) OR (object_seen = 0 AND updated < ?))"
-
-
-class SessionStore(Store):
-    """Sessions in one SQLite file; safe to use from many threads (a connection per call)."""
-
-    def __init__(
-        self,
-        path: str | Path,
-        *,
-        max_sessions: int,
-        ttl_s: float,
-        unseen_ttl_s: float | None = None,
-        clock: Callable[[], float] = time.time,
-    ) -> None:
-        super().__init__(max_sessions=max_sessions, ttl_s=ttl_s, unseen_ttl_s=unseen_ttl_s)
-        self.path = Path(path)
-        self.clock = clock
-        self.path.parent.mkdir(parents=True, exist_ok=True)
-        with closing(self._connect()) as con:
-            con.execute("PRAGMA auto_vacuum=INCREMENTAL")  # lets purges give the space back
-            con.execute("PRAGMA journal_mode=WAL")
-            con.executescript(_SCHEMA)
-
-    @property
-    def where(self) -> str:
-        return str(self.path)
-
-    def _connect(self) -> sqlite3.Connection:
-        con = sqlite3.connect(self.path, timeout=30.0, isolation_level=None)
-        con.execute("PRAGMA synchronous=NORMAL")  # WAL: durable against a killed process
-        return con
-
-    # ---------------------------------------------------------------------------- reads
-    def get(self, session_id: str) -> SessionRecord:
-        """The live session; raises SessionNotFound (an expired one is deleted on the way)."""
-        with closing(self._connect()) as con:
-            row = con.execute(
-                "SELECT id, model, created, updated, views, object_seen, state "
-                "FROM sessions WHERE id = ?",
-                (session_id,),
-            ).fetchone()
-            if row is None:
-                raise SessionNotFound(self.not_found_message(session_id))
-            record = SessionRecord(*row[:5], bool(row[5]), bytes(row[6]))
-            if self._expired(record.updated, record.object_seen):
-                con.execute(
-                    "DELETE FROM sessions WHERE id = ? AND updated = ?",
-                    (session_id, record.updated),
-                )
-                raise SessionNotFound(self.not_found_message(session_id))
-        return record
-
-    def count(self) -> int:
-        with closing(self._connect()) as con:
-            query = f"SELECT COUNT(*) FROM sessions WHERE NOT {_EXPIRED}"
-            (n,) = con.execute(query, self._limits()).fetchone()
-        return int(n)
-
-    def _expired(self, updated: float, object_seen: bool) -> bool:
-        return updated < self.clock() - (self.ttl_s if object_seen else self.unseen_ttl_s)
-
-    def _limits(self) -> tuple[float, float]:
-        """The oldest ``updated`` still alive: for seen, then for unseen sessions."""
-        now = self.clock()
-        return now - self.ttl_s, now - self.unseen_ttl_s
-
-    # ---------------------------------------------------------------------------- writes
-    def create(
-        self, session_id: str, *, model: str, state: bytes, views: int, object_seen: bool
-    ) -> SessionRecord:
-        now = self.clock()
-        with closing(self._connect()) as con:
-            con.execute("BEGIN IMMEDIATE")
-            try:
-                con.execute(f"DELETE FROM sessions WHERE {_EXPIRED}", self._limits())
-                (n,) = con.execute("SELECT COUNT(*) FROM sessions").fetchone()
-                if n >= self.max_sessions:
-                    raise self._full()
-                con.execute(
-                    "INSERT INTO sessions (id, model, created, updated, views, object_seen, state)"
-                    " VALUES (?, ?, ?, ?, ?, ?, ?)",
-                    (session_id, model, now, now, views, int(object_seen), state),
-                )
-                con.execute("COMMIT")
-            except BaseException:
-                con.execute("ROLLBACK")
-                raise
-        return SessionRecord(session_id, model, now, now, views, object_seen, state)
-
-    def update(
-        self, record: SessionRecord, *, state: bytes, views: int, object_seen: bool
-    ) -> SessionRecord:
-        now = self.clock()
-        with closing(self._connect()) as con:
-            cursor = con.execute(
-                "UPDATE sessions SET state = ?, views = ?, object_seen = ?, updated = ? "
-                "WHERE id = ? AND views = ?",
-                (state, views, int(object_seen), now, record.id, record.views),
-            )
-            if cursor.rowcount == 0:
-                exists = con.execute("SELECT 1 FROM sessions WHERE id = ?", (record.id,)).fetchone()
-                if exists is None:
-                    raise SessionNotFound(self.not_found_message(record.id))
-                raise ConcurrentUpdate(f"session {record.id!r} changed while a view was applied")
-        return SessionRecord(
-            record.id, record.model, record.created, now, views, object_seen, state
-        )
-
-    def delete(self, session_id: str) -> bool:
-        with closing(self._connect()) as con:
-            cursor = con.execute("DELETE FROM sessions WHERE id = ?", (session_id,))
-            con.executescript("PRAGMA incremental_vacuum;")  # (executescript steps it to the end)
-        return cursor.rowcount > 0
-
-    def recall(self, key: str) -> str | None:
-        with closing(self._connect()) as con:
-            row = con.execute("SELECT answer FROM answers WHERE key = ? AND expires > ?",
-                              (key, self.clock())).fetchone()
-        return None if row is None else str(row[0])
-
-    def remember(self, key: str, answer: str) -> None:
-        with closing(self._connect()) as con:
-            con.execute("INSERT OR REPLACE INTO answers (key, answer, expires) VALUES (?, ?, ?)",
-                        (key, answer, self.clock() + self.ttl_s))
-
-    def purge_expired(self) -> int:
-        with closing(self._connect()) as con:
-            con.execute("DELETE FROM answers WHERE expires <= ?", (self.clock(),))
-            cursor = con.execute(f"DELETE FROM sessions WHERE {_EXPIRED}", self._limits())
-            con.executescript("PRAGMA incremental_vacuum;")  # the file shrinks back
-        if cursor.rowcount:
-            log.info("purged %d expired sessions", cursor.rowcount)
-        return cursor.rowcount
-
 
 def open_store(settings: Settings) -> Store:
     """The store the settings name: Redis for ``store_url``, else the SQLite ``store_path``."""
@@ -193,7 +31,7 @@ def open_store(settings: Settings) -> Store:
     )
     if settings.store_url is not None:
         return RedisSessionStore(settings.store_url, **limits)
-    return SessionStore(settings.store_path, **limits)
+    return SQLiteSessionStore(settings.store_path, **limits)
 
 
 class SessionLocks:

@@ -163,10 +163,11 @@ def test_a_lock_left_for_30_s_delays_no_other_session(replica):
 def test_both_stores_keep_an_idempotent_answer_for_a_sessions_life(redis_url, tmp_path):
     """Store.recall/remember, behind POST /views's Idempotency-Key: in Redis (shared by the
     replicas) and in SQLite, gone once a session would be."""
-    from service.sessions import SessionStore
+    from service.sqlite_store import SQLiteSessionStore
 
     now = [1000.0]
-    sqlite = SessionStore(tmp_path / "s.sqlite", max_sessions=5, ttl_s=60.0, clock=lambda: now[0])
+    sqlite = SQLiteSessionStore(tmp_path / "s.sqlite", max_sessions=5, ttl_s=60.0,
+                                clock=lambda: now[0])
     stores = [_store(redis_url, "idem:"), sqlite]
     for s in stores:
         assert s.recall("k1") is None

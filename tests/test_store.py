@@ -21,8 +21,8 @@ from completion.model import load_model
 from completion.stream import CompletionStream
 from service.load import scene_views
 from service.redis_store import RedisSessionStore
-from service.sessions import SessionStore
 from service.settings import Settings
+from service.sqlite_store import SQLiteSessionStore
 from service.store import ConcurrentUpdate, SessionNotFound, StoreFull
 
 
@@ -34,7 +34,7 @@ def make_store(request, tmp_path):
     def make(**limits):
         limits = dict(max_sessions=3, ttl_s=60.0) | limits
         if request.param == "sqlite":
-            store = SessionStore(tmp_path / f"{uuid.uuid4().hex}.sqlite", **limits)
+            store = SQLiteSessionStore(tmp_path / f"{uuid.uuid4().hex}.sqlite", **limits)
         else:
             url = request.getfixturevalue("redis_url")
             store = RedisSessionStore(url, prefix=f"test:{uuid.uuid4().hex}:", **limits)
@@ -92,7 +92,7 @@ def test_sessions_expire_unseen_ones_sooner(make_store):
 
 def test_sqlite_file_shrinks_after_deletes(tmp_path):
     path = tmp_path / "store.sqlite"
-    store = SessionStore(path, max_sessions=100, ttl_s=60.0)
+    store = SQLiteSessionStore(path, max_sessions=100, ttl_s=60.0)
     state = np.random.default_rng(0).bytes(200_000)
     for k in range(40):
         store.create(f"s{k}", model="m", state=state, views=1, object_seen=True)
