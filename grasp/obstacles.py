@@ -28,6 +28,7 @@ This module must not import torch (docs/design.md §2).
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -89,12 +90,6 @@ class Obstacles:
     def reach(self) -> float:
         """How far from a voxel's centre its cube reaches (half its diagonal)."""
         return 0.5 * math.sqrt(3.0) * self.pitch
-
-    def near(self, centre: np.ndarray, radius: float) -> np.ndarray:
-        """The voxel centres within ``radius`` (+ :attr:`reach`) of ``centre``."""
-        if self._tree is None:
-            return self.centres
-        return self.centres[self._tree.query_ball_point(centre, radius + self.reach)]
 
     def transformed(self, matrix: np.ndarray) -> Obstacles:
         """The same voxels moved by the rigid ``matrix`` (4, 4)."""
@@ -180,9 +175,6 @@ def _sweeps(obstacles: Obstacles, poses: np.ndarray, halves: np.ndarray, moves: 
     return box[hit], voxel[hit]
 
 
-#: What growing a finger link's box for a voxel's size and its turn between two closing samples
-#: adds at most to how far it reaches (m; √3 × (4.3 mm + 4 cm × 5°) is 14 mm).
-GROWTH_MARGIN_M = 0.02
 #: The links that turn while the fingers close, and each finger's (J2, J3) in the 8 joints.
 FINGER_LINKS = ("_prox", "_dist")
 _FINGER_JOINTS = ((1, 2), (4, 5), (6, 7))
@@ -193,24 +185,9 @@ class _Hand:
 
     def __init__(self, params: BarrettParams) -> None:
         self.kinematics = HandKinematics(params)
-        self.params = params
         self.boxes = {link: [(prim.pose, prim.half_extents())
                              for prim in self.kinematics.primitives_of(link)]
                       for link in LINK_NAMES}
-        # how far a finger's boxes reach from its knuckle, at any of its joints (sampled)
-        reach = 0.0
-        for q in np.radians(np.arange(0.0, params.finger_dof_max_deg + 1.0, 10.0)):
-            for link, pose in zip(("f1_prox", "f1_dist"), self.kinematics.finger_poses(
-                    np.eye(4), "f1", min(q, np.radians(params.proximal_max_deg)),
-                    q * params.distal_ratio), strict=True):
-                for local, half in self.boxes[link]:
-                    box = pose @ local
-                    reach = max(reach, float(np.linalg.norm(box[:3, 3]) + np.linalg.norm(half)))
-        self.finger_reach = reach
-        # and how far a knuckle lies from the palm's origin, at any spread
-        self.knuckle_reach = max(
-            float(np.linalg.norm(self.kinematics.knuckle_pose(f, s)[:3, 3]))
-            for f in FINGERS for s in np.radians([0.0, 90.0, 180.0]))
 
     def world_boxes(self, palm: np.ndarray, joints_rad: np.ndarray):
         """Every primitive's box at these joints: (links, (B, 4, 4) box→world, (B, 3) half
@@ -222,13 +199,9 @@ class _Hand:
         return links, np.asarray(palm)[..., None, :, :] @ local, halves
 
 
-_HANDS: dict[BarrettParams, _Hand] = {}
-
-
+@functools.lru_cache(maxsize=4)
 def _hand(params: BarrettParams) -> _Hand:
-    if params not in _HANDS:
-        _HANDS[params] = _Hand(params)
-    return _HANDS[params]
+    return _Hand(params)
 
 
 def _first_hit(obstacles: Obstacles, links: Sequence[str], poses: np.ndarray,

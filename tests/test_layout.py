@@ -92,3 +92,16 @@ def test_the_service_settings_load_no_planner() -> None:
     assert {t for t in graph["service.settings"] if t.startswith("grasp")} <= CONSTANTS
     for name in CONSTANTS:
         assert not graph[name], (name, graph[name])
+
+
+def test_the_wire_types_load_no_http_client() -> None:
+    """The completion, the hand and the service share grasp_client's wire types: importing them
+    does not import the client's httpx (it is imported when a client name is first used)."""
+    import subprocess
+    import sys
+
+    code = ("import sys, completion.stream, completion.scenes, hands.barrett, service.inputs; "
+            "assert 'httpx' not in sys.modules, 'httpx loaded'; "
+            "from grasp_client import GraspClient, SupportPlane; "
+            "assert 'httpx' in sys.modules and GraspClient.__module__ == 'grasp_client.client'")
+    subprocess.run([sys.executable, "-c", code], check=True, cwd=REPO)
