@@ -59,7 +59,7 @@ from grasp.closing import MAX_BACKOFF_M, Search, approach_until_contact, close_f
 from grasp.collision import CollisionScene, Contact, check_pose
 from grasp.pinch import TABLE_PINCH, close_pinching, faces_table
 from grasp.quality import EPSILON_NO_CLOSURE, MU_RUBBER, contacts_quality
-from grasp.table import SupportPlane
+from grasp_client.wire import SupportPlane
 from hands.barrett import FINGERS, JOINT_NAMES
 from hands.barrett.kinematics import joints_from_dofs
 

@@ -26,7 +26,7 @@ import trimesh
 from grasp.collision import check_mesh, fibonacci_directions
 from grasp.pinch import TABLE_PINCH, TIP_CLEARANCE_M, pinch_height
 from grasp.screen import finger_reach, open_hand_lowest
-from grasp.table import SupportPlane
+from grasp_client.wire import SupportPlane
 
 #: Spreads (degrees) the random candidates draw from: parallel fingers, tripod, T, and between.
 DEFAULT_SPREADS_DEG: tuple[float, ...] = (0.0, 30.0, 60.0, 90.0)

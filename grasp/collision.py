@@ -28,7 +28,7 @@ import numpy as np
 import trimesh
 from scipy.spatial import ConvexHull, HalfspaceIntersection, QhullError
 
-from grasp.table import SupportPlane
+from grasp_client.wire import SupportPlane
 from hands.barrett import BH8_282, LINK_NAMES, BarrettParams, HandKinematics
 from hands.barrett.kinematics import Primitive
 

@@ -28,7 +28,7 @@ import numpy as np
 
 from grasp.physics.settings import DENSITY_KG_M3
 from grasp.pinch import TABLE_PINCH
-from grasp.table import SupportPlane
+from grasp_client.wire import SupportPlane
 
 MODEL_PATH = Path(__file__).with_name("lift_model.json")
 DATA_PATH = Path(__file__).with_name("lift_model_data.csv")

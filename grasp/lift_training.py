@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from grasp.lift_model import DATA_PATH, FEATURES, MODEL_PATH, features
-from grasp.table import SupportPlane
+from grasp_client.wire import SupportPlane
 
 
 def _collect_one(job: tuple[int, str, int]) -> list[dict]:

@@ -43,8 +43,7 @@ from collections.abc import Sequence
 import numpy as np
 
 from grasp.closing import ANGLE_TOL_RAD, Search, close_finger, shift, speed_bounds
-from grasp.table import SupportPlane
-from grasp_client.wire import WristRise
+from grasp_client.wire import SupportPlane, WristRise
 from hands.barrett import BH8_282, FINGERS, BarrettParams, HandKinematics
 
 __all__ = ["PROFILE_STEP_DEG", "TABLE_PINCH", "TIP_CLEARANCE_M", "close_pinching", "depth",

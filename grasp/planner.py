@@ -49,9 +49,10 @@ from grasp.defaults import AUTOGRASP_BUDGET as AUTOGRASP_BUDGET  # re-exported
 from grasp.obstacles import Obstacles, hand_clear, hit_reason, sweep_hit
 from grasp.pinch import TABLE_PINCH, pinch_failure
 from grasp.screen import Screen, fingertip_span
-from grasp.table import SupportPlane, crosses
+from grasp.table import crosses
 from grasp.verify import DEFAULT_VERIFY, VerifySettings, describe
 from grasp.verify import verify as verify_grasps
+from grasp_client.wire import SupportPlane
 from hands.barrett import JOINT_NAMES
 
 #: Largest object the planner tries, as its bounding-box diagonal (metres). The open BH8-282

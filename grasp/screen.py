@@ -35,7 +35,7 @@ import trimesh
 from scipy import ndimage
 
 from completion.grid import sample_surface
-from grasp.table import SupportPlane
+from grasp_client.wire import SupportPlane
 from hands.barrett import BH8_282, JOINT_NAMES, BarrettParams, HandKinematics
 
 #: Voxels of the distance field across the object's largest extent.

@@ -20,8 +20,8 @@ from completion.grid import transform_points
 from grasp_client.wire import SupportPlane
 from hands.barrett import HandKinematics
 
-__all__ = ["TABLE_TOL_M", "SupportPlane", "crosses", "hand_clearance", "hand_points",
-           "hand_primitives", "to_upright"]
+__all__ = ["TABLE_TOL_M", "crosses", "hand_clearance", "hand_points", "hand_primitives",
+           "to_upright"]
 
 #: A grasp whose hand reaches further below the table is dropped (only rounding can put it there).
 TABLE_TOL_M = 1e-6

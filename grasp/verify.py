@@ -35,8 +35,7 @@ import numpy as np
 import trimesh
 
 from grasp.autograsp import GraspResult
-from grasp.table import SupportPlane
-from grasp_client.wire import Verification
+from grasp_client.wire import SupportPlane, Verification
 
 #: Lift trials per verified grasp (chosen on training-split objects: docs/grasping.md).
 TRIALS = 2

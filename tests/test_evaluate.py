@@ -298,9 +298,7 @@ def test_same_seed_same_numbers(tiny_run, tmp_path):
         conditions=("object_hiding",),
         count=1,
         grasp_count=0,
-        named=0,
-        sensor=0,
-        benchmark=0, sizes=(("clutter", 0),),  # one cell of the main table is compared
+        options=(("named", 0), ("sensor", 0), ("benchmark", 0), ("clutter", 0)),  # one cell
         views=3,
         seed=3,
         candidates=2,
@@ -325,10 +323,8 @@ def test_numbers_do_not_depend_on_the_number_of_workers(tmp_path):
             conditions=("object_reveal",),
             count=1,
             grasp_count=0,
-            named=0,
-            sensor=1,
-            benchmark=2,  # the benchmark's records are compared too (per_object)
-            benchmark_candidates=8,
+            # the benchmark's records are compared too (per_object)
+            options=(("named", 0), ("sensor", 1), ("benchmark", 2), ("benchmark_candidates", 8)),
             views=3,
             seed=5,
             workers=workers,
@@ -350,10 +346,8 @@ def _settings(paths: dict, **changes) -> ev.Settings:
         conditions=("camera_pan",),
         count=1,
         grasp_count=0,
-        named=0,
-        sensor=0,
-        sizes=(("overhead", 0), ("clutter", 0)),
-        benchmark=0,  # the main table's rows are what these tests look at
+        # the main table's rows are what these tests look at
+        options=(("named", 0), ("sensor", 0), ("overhead", 0), ("clutter", 0), ("benchmark", 0)),
         views=3,
         seed=7,
         candidates=2,

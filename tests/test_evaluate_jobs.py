@@ -8,8 +8,8 @@ from grasp.evaluate.config import SENSOR_TABLE
 
 def test_sensor_jobs_pair_every_condition_and_extra_grasps_are_grasp_only():
     jobs = ev.make_jobs(ev.Settings(rows=(ev.FUSION,), count=1, grasp_count=3, physics_count=2,
-                                    sensor=2, named=0, benchmark=0,
-                                    sizes=(("overhead", 0), ("clutter", 0))))
+                                    options=(("sensor", 2), ("named", 0), ("benchmark", 0),
+                                             ("overhead", 0), ("clutter", 0))))
     sensor = {(j.condition, j.index, j.noise) for j in jobs if j.table == SENSOR_TABLE}
     for c in CONDITIONS:  # the main table holds index 0 on the condition's default side
         d = c == "tabletop"

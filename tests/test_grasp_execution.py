@@ -13,7 +13,7 @@ import trimesh
 from grasp.physics import lift_test
 from grasp.physics.settings import DEFAULT_SETTINGS
 from grasp.planner import HOLD_THRESHOLD, plan
-from grasp.table import SupportPlane
+from grasp_client.wire import SupportPlane
 
 FLOOR = SupportPlane(np.array([0.0, 0.0, 1.0]), 0.0)  # the table z = 0
 

@@ -11,7 +11,7 @@ import trimesh
 from grasp.obstacles import Obstacles, sweep_hit
 from grasp.physics import lift_test
 from grasp.planner import plan
-from grasp.table import SupportPlane
+from grasp_client.wire import SupportPlane
 
 TABLE = SupportPlane([0.0, 0.0, 1.0], 0.0)
 

@@ -15,8 +15,8 @@ from grasp.candidates import table_candidates
 from grasp.physics import lift_test
 from grasp.pinch import TABLE_PINCH, TIP_CLEARANCE_M, depth, pinch_height, profile, rise
 from grasp.planner import plan
-from grasp.table import SupportPlane, hand_clearance
-from grasp_client.wire import Grasp, WristRise
+from grasp.table import hand_clearance
+from grasp_client.wire import Grasp, SupportPlane, WristRise
 from hands.barrett import JOINT_NAMES, HandKinematics
 
 FLOOR = SupportPlane(np.array([0.0, 0.0, 1.0]), 0.0)

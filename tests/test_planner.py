@@ -22,7 +22,8 @@ from grasp.planner import (
     plan,
     rank_key,
 )
-from grasp.table import SupportPlane, crosses, hand_clearance, hand_points
+from grasp.table import crosses, hand_clearance, hand_points
+from grasp_client.wire import SupportPlane
 
 
 @pytest.fixture(scope="module")

@@ -23,7 +23,8 @@ from grasp.collision import CollisionScene
 from grasp.pinch import pinch_height
 from grasp.planner import plan
 from grasp.screen import Screen, finger_reach, open_hand_lowest
-from grasp.table import TABLE_TOL_M, SupportPlane, hand_clearance, hand_primitives
+from grasp.table import TABLE_TOL_M, hand_clearance, hand_primitives
+from grasp_client.wire import SupportPlane
 
 FLOOR = SupportPlane(np.array([0.0, 0.0, 1.0]), 0.0)  # the table z = 0
 BEND = math.radians(40.0)

@@ -14,7 +14,8 @@ import trimesh
 from grasp import verify as V
 from grasp.physics import lift_test
 from grasp.planner import plan
-from grasp.table import SupportPlane, to_upright
+from grasp.table import to_upright
+from grasp_client.wire import SupportPlane
 
 GOLDEN = Path(__file__).parent / "golden" / "plan_unverified.json"
 FLOOR = SupportPlane([0.0, 0.0, 1.0], 0.0)

@@ -9,8 +9,6 @@ import numpy as np
 from completion.scenes import CONDITIONS, SINGLE_OBJECT_CONDITIONS
 from grasp.evaluate.cells import mean_or_none
 from grasp.evaluate.config import (
-    BENCHMARK_TABLE,
-    CLUTTER_TABLE,
     EVAL_SPLITS,
     FSCORE_METRICS,
     GRASP_SUCCESS,
@@ -141,35 +139,33 @@ def fscore_ceiling(ceiling: dict) -> dict:
     return out
 
 
-def per_object_records(results: list[SequenceResult], settings: Settings) -> list[dict]:
+def sequence_records(r: SequenceResult, settings: Settings) -> list[dict]:
+    """results.json's ``per_object`` records of a sequence scored like the main table's: one per
+    row (none for a sequence not scored, such as an overhead search without a view from
+    above)."""
+    if not r.per_view:
+        return []
     records = []
-    for r in results:
-        if r.job.table in (BENCHMARK_TABLE, CLUTTER_TABLE):
-            records.append({"table": r.job.table, "index": r.job.index,
-                            "object_ids": r.object_ids, "benchmark": r.benchmark["rows"]})
-            continue
-        if not r.per_view:  # an overhead search without a view from above: not completed
-            continue
-        for row in settings.rows:
-            g = r.grasps.get(row)
-            records.append(
-                {
-                    "table": r.job.table,
-                    "condition": r.job.condition,
-                    "split": r.job.split,
-                    "index": r.job.index,
-                    "object_ids": r.object_ids,
-                    "model": row,
-                    "jaccard": mean_or_none(r.per_view[row]["jaccard"]),
-                    "fscore_1": mean_or_none(r.per_view[row]["fscore_1"]),
-                    "fscore_2": mean_or_none(r.per_view[row]["fscore_2"]),
-                    "jaccard_per_view": [round(v, 4) for v in r.per_view[row]["jaccard"]],
-                    "joint_error_deg": None if g is None else g["error_deg"],
-                    "joint_error_moving_deg": None if g is None else g["error_moving_deg"],
-                    "joint_error_per_joint_deg": None if g is None else g["per_joint_deg"],
-                    "grasp": g,
-                }
-            )
+    for row in settings.rows:
+        g = r.grasps.get(row)
+        records.append(
+            {
+                "table": r.job.table,
+                "condition": r.job.condition,
+                "split": r.job.split,
+                "index": r.job.index,
+                "object_ids": r.object_ids,
+                "model": row,
+                "jaccard": mean_or_none(r.per_view[row]["jaccard"]),
+                "fscore_1": mean_or_none(r.per_view[row]["fscore_1"]),
+                "fscore_2": mean_or_none(r.per_view[row]["fscore_2"]),
+                "jaccard_per_view": [round(v, 4) for v in r.per_view[row]["jaccard"]],
+                "joint_error_deg": None if g is None else g["error_deg"],
+                "joint_error_moving_deg": None if g is None else g["error_moving_deg"],
+                "joint_error_per_joint_deg": None if g is None else g["per_joint_deg"],
+                "grasp": g,
+            }
+        )
     return records
 
 

@@ -19,13 +19,23 @@ from grasp.evaluate.pool import run_jobs
 from grasp.evaluate.report import markdown_report
 from grasp.evaluate.results import build_results
 from grasp.evaluate.runner import make_jobs
-from grasp.evaluate.tables import TABLES
+from grasp.evaluate.tables import OPTIONS, Option
 
 
 def _preset_help(field: str) -> str:
     """The defaults of a preset-given option, read from the presets so that --help cannot drift."""
     d, q, f = (getattr(PRESETS[name], field) for name in ("default", "quick", "full"))
     return f"default {d}, {q} with --quick, {f} with --full"
+
+
+def _add(parser: argparse.ArgumentParser, option: Option) -> None:
+    """A table's option: ``--<name> N`` (and ``--no-<name>`` where it has one)."""
+    bare = {} if option.bare is None else {"nargs": "?", "const": option.bare}
+    parser.add_argument(option.flag, type=integer_at_least(option.least), default=None,
+                        metavar="N", help=option.help_text(), **bare)
+    if option.negatable:
+        parser.add_argument(f"--no-{option.name}", action="store_const", const=0,
+                            dest=option.name, help=f"the same as {option.flag} 0")
 
 
 def evaluate(settings: Settings, *, out: Path | None = None, progress: bool = True) -> dict:
@@ -115,67 +125,8 @@ def build_parser() -> argparse.ArgumentParser:
         help="of the grasped test sequences, how many are also lift-tested in pybullet dynamics "
         f"(grasp success; 0 = none; {_preset_help('physics_count')})",
     )
-    p.add_argument(
-        "--named",
-        type=integer_at_least(0),
-        default=None,
-        help="held-out named pybullet_data objects to evaluate (0 = none; "
-        f"{_preset_help('named')})",
-    )
-    for table in TABLES:  # the tables that declare their own size
-        if table.sizing is not None:
-            s = table.sizing
-            p.add_argument(f"--{table.name}", type=integer_at_least(0), default=None,
-                           metavar="N", help=f"{s.help} (0 = none; default {s.default}, "
-                           f"{s.quick} with --quick, {s.full} with --full)")
-    p.add_argument(
-        "--benchmark",
-        type=integer_at_least(0),
-        nargs="?",
-        const=100,
-        default=None,
-        metavar="N",
-        help="objects of the grasp-success benchmark (objects on a table, grasped from 1 or 4 "
-        f"views, lift-tested; 0 = none; {_preset_help('benchmark')}; --benchmark alone: 100)",
-    )
-    p.add_argument(
-        "--verified",
-        type=integer_at_least(0),
-        default=None,
-        metavar="N",
-        help="of the benchmark's objects, how many also get the verified rows (the best grasps "
-        "lift-tested on the planned mesh before the top one is chosen; with --benchmark N and "
-        f"no --verified: all N; {_preset_help('verified')})",
-    )
-    p.add_argument(
-        "--benchmark-verify",
-        type=integer_at_least(1),
-        default=4,
-        metavar="N",
-        help="grasps the verified rows try at most, until one holds in every trial (default 4)",
-    )
-    p.add_argument(
-        "--benchmark-candidates",
-        type=integer_at_least(1),
-        default=64,
-        metavar="N",
-        help="planner candidates of the benchmark's grasps (default 64, the service's)",
-    )
-    p.add_argument(
-        "--sensor",
-        type=integer_at_least(0),
-        default=None,
-        metavar="N",
-        help="test sequences per condition seen with and without the sensor model, paired "
-        f"(Jaccard; 0 = none; {_preset_help('sensor')})",
-    )
-    p.add_argument(
-        "--no-sensor",
-        action="store_const",
-        const=0,
-        dest="sensor",
-        help="skip the table of every condition seen with and without the sensor model",
-    )
+    for option in OPTIONS.values():  # the other tables' own (tables.base.Option)
+        _add(p, option)
     p.add_argument(
         "--candidates",
         type=integer_at_least(1),
@@ -263,20 +214,14 @@ def settings_from_args(args: argparse.Namespace, parser: argparse.ArgumentParser
              if getattr(args, f.name) is not None}
     if "count" in given and "grasp_count" not in given:  # grasp no more than is counted
         given["grasp_count"] = min(given["count"], preset.grasp_count)
-    if "benchmark" in given and "verified" not in given:  # every object the benchmark names
-        given["verified"] = given["benchmark"]
     sizes = dataclasses.replace(preset, **given)
-    own = tuple((t.name, t.sizing.preset(args.preset) if getattr(args, t.name) is None
-                 else getattr(args, t.name)) for t in TABLES if t.sizing is not None)
     return Settings(
         **dataclasses.asdict(sizes),
-        sizes=own,
+        options=tuple((name, _option_value(args, option)) for name, option in OPTIONS.items()),
         rows=tuple(args.models),
         model_paths=tuple(paths),
         prior_path=str(prior_path) if PRIOR in args.models else "",
         conditions=tuple(args.conditions),
-        benchmark_candidates=args.benchmark_candidates,
-        benchmark_verify=args.benchmark_verify,
         objects=objects,
         views=args.views,
         seed=args.seed,
@@ -284,6 +229,15 @@ def settings_from_args(args: argparse.Namespace, parser: argparse.ArgumentParser
         ray=args.ray,
         examples=not args.no_figures,
     )
+
+
+def _option_value(args: argparse.Namespace, option: Option) -> int:
+    """What the command line gives a table's option, else the option it follows when that one is
+    given, else its value in the run's preset."""
+    given = getattr(args, option.name)
+    if given is None and option.follows is not None:
+        given = getattr(args, option.follows)
+    return option.preset(args.preset) if given is None else given
 
 
 def main(argv: list[str] | None = None) -> int:

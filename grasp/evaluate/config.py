@@ -3,7 +3,7 @@ paper's numbers to print beside ours."""
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 
 from completion.scenes import CONDITIONS, VIEWS
 
@@ -138,17 +138,15 @@ DEFAULT_THRESHOLD = 0.5
 
 @dataclass(frozen=True)
 class Preset:
-    """Sizes of a run: sequences per (condition, split), named objects, planner candidates."""
+    """The main table's sizes in a run: sequences per (condition, split), grasped and lift-tested
+    ones, planner candidates (the other tables' options give theirs per preset themselves:
+    :class:`grasp.evaluate.tables.base.Option`)."""
 
     count: int
-    named: int
     candidates: int
     grasp_count: int  # test sequences grasped per single-object condition (beyond count: only
     # grasped); the train split grasps at most count
     physics_count: int  # of the grasped test ones, how many are lift-tested in pybullet
-    sensor: int  # test sequences per condition seen with and without the sensor (SENSOR_TABLE)
-    benchmark: int  # objects of the grasp-success benchmark (BENCHMARK_TABLE)
-    verified: int  # of those, how many also get the verified rows (grasps tried in physics)
 
 
 #: Sizes per preset, from measured costs on one core (process time): generating a sequence
@@ -159,25 +157,20 @@ class Preset:
 #: lift-tested sequence. F-score of 12 views × (8 rows + the ceiling) ≈ 2.3 s a sequence.
 PRESETS: dict[str, Preset] = {
     # ≈ 90 core-seconds: a smoke test of the whole chain (about a minute on two cores).
-    "quick": Preset(count=2, named=3, candidates=8, grasp_count=2, physics_count=1, sensor=1,
-                    benchmark=1, verified=1),
+    "quick": Preset(count=2, candidates=8, grasp_count=2, physics_count=1),
     # The command with no arguments (timings in the README): 120 sequences (10 per condition
     # and split), all 80 single-object ones grasped with 24 candidates (the planner's 24
     # principal-axis poses) and 10 more test sequences per single-object condition grasped only
     # (20 grasps per test cell, so that one grasp cannot swing the joint error), 5 of them per
-    # test cell lift-tested, 5 of the named objects (all 10
-    # with --full or --named 10), the sensor table (5 test sequences per condition, on and off,
-    # Jaccard only), the grasp benchmark's 30 objects, 10 of them with the verified rows (each
-    # tries up to 4 grasps in 2 lift trials), and the tables that size themselves
-    # (tables.base.Sizing), at their defaults: under 10 minutes on two cores (706 s
+    # test cell lift-tested, and the other tables at their own defaults (tables.base.Option:
+    # 5 named objects, the sensor table's 5 test sequences per condition, the grasp benchmark's
+    # 30 objects, 10 of them with the verified rows, ...): under 10 minutes on two cores (706 s
     # measured before the sensor table, a table sized by itself and the train split's lift
     # tests were cut to these sizes).
-    "default": Preset(count=10, named=5, candidates=24, grasp_count=20, physics_count=5,
-                      sensor=5, benchmark=30, verified=10),
+    "default": Preset(count=10, candidates=24, grasp_count=20, physics_count=5),
     # ≈ 4,500 core-seconds (about 40 minutes on two cores; use --workers on a bigger machine):
     # 50 sequences per cell and the planner's full 64 candidates.
-    "full": Preset(count=50, named=10, candidates=64, grasp_count=50, physics_count=10,
-                   sensor=50, benchmark=100, verified=100),
+    "full": Preset(count=50, candidates=64, grasp_count=50, physics_count=10),
 }
 
 
@@ -207,12 +200,6 @@ class Settings:
     count: int = PRESETS["default"].count
     grasp_count: int = PRESETS["default"].grasp_count
     physics_count: int = PRESETS["default"].physics_count
-    named: int = PRESETS["default"].named
-    sensor: int = PRESETS["default"].sensor
-    benchmark: int = PRESETS["default"].benchmark
-    verified: int = PRESETS["default"].verified
-    benchmark_verify: int = 4  # grasps the verified rows try at most (plan(..., verify=N))
-    benchmark_candidates: int = 64  # planner candidates of the benchmark's grasps
     objects: tuple[str, ...] = ()  # file: ids of --objects DIR
     views: int = VIEWS
     seed: int = 0
@@ -221,13 +208,11 @@ class Settings:
     workers: int = 1
     ray: bool = False  # run the workers as Ray actors (completion.cluster)
     examples: bool = True
-    #: (table name, size) of the tables sized by their own option (:class:`grasp.evaluate.
-    #: tables.base.Sizing`); a table not named here has its default size
-    sizes: tuple[tuple[str, int], ...] = ()
-
-    def size(self, table: str, default: int) -> int:
-        """The size the run gives ``table`` (``default`` when it names none)."""
-        return dict(self.sizes).get(table, default)
+    #: (name, value) of the tables' own options (:class:`grasp.evaluate.tables.base.Option`,
+    #: read with its ``of``); an option not named here has its default. Checked against the
+    #: tables when a run plans its jobs (:func:`grasp.evaluate.tables.check_options`), as the
+    #: tables import this module
+    options: tuple[tuple[str, int], ...] = ()
 
     def __post_init__(self) -> None:
         unknown = [r for r in self.rows if r not in ROWS]
@@ -245,22 +230,13 @@ class Settings:
             "count",
             "grasp_count",
             "physics_count",
-            "named",
-            "sensor",
-            "benchmark",
-            "verified",
-            "benchmark_verify",
-            "benchmark_candidates",
             "candidates",
             "samples",
             "workers",
         ):
-            least = 1 if name in ("candidates", "benchmark_candidates", "samples", "workers") else 0
+            least = 1 if name in ("candidates", "samples", "workers") else 0
             if getattr(self, name) < least:
                 raise ValueError(f"{name} out of range: {getattr(self, name)}")
-        for table, size in self.sizes:
-            if size < 0:
-                raise ValueError(f"the {table} table's size out of range: {size}")
         if self.views < 2:
             raise ValueError(f"views must be >= 2, got {self.views}")
 
@@ -280,15 +256,3 @@ class Job:
     physics: bool = False  # also lift-test the grasps in pybullet (grasped jobs only)
     noise: bool | None = None  # the sensor model (None: the condition's default)
     light: bool = False  # Jaccard (and the share below the table) only: no F-score, no grasp
-
-
-def config_dict(settings: Settings) -> dict:
-    """results.json's ``config``: the settings as plain JSON."""
-    d = asdict(settings)
-    del d["sizes"]
-    d |= dict(settings.sizes)  # each table's size under its name
-    d["model_paths"] = dict(settings.model_paths)
-    d["objects"] = list(settings.objects)
-    d["fscore_fractions"] = [0.01, 0.02]
-    d["splits"] = list(EVAL_SPLITS)
-    return d

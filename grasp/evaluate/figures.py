@@ -5,15 +5,12 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
-import trimesh
 
 from completion import grid as G
 from completion.bullet import quiet_fds
 from completion.grid import VoxelGrid
 from completion.scenes import Sequence
 from grasp.evaluate.config import (
-    BENCHMARK_TABLE,
-    CLUTTER_TABLE,
     CONDITION_LABELS,
     PAPER_ORDER,
     REFERENCE_ROWS,
@@ -22,6 +19,7 @@ from grasp.evaluate.config import (
 )
 from grasp.evaluate.records import SequenceResult
 from grasp.evaluate.runner import truth_mesh_in_latest_camera
+from grasp.evaluate.tables import TABLES
 
 
 def _projections(occupancy: np.ndarray) -> np.ndarray:
@@ -45,7 +43,8 @@ def _projections(occupancy: np.ndarray) -> np.ndarray:
 
 
 def write_figures(results: dict, raw: list[SequenceResult], out: Path) -> list[Path]:
-    """jaccard_per_view.png, examples.png and grasps.png (when there are grasps)."""
+    """jaccard_per_view.png, examples.png and grasps.png (when there are grasps), and each
+    table's own (:meth:`grasp.evaluate.tables.base.Table.figures`)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -115,104 +114,15 @@ def write_figures(results: dict, raw: list[SequenceResult], out: Path) -> list[P
         plt.close(fig)
         written.append(path)
 
-    seed = results["config"]["seed"]
-    for path in (_grasp_figure(raw, out, plt), _benchmark_failures_figure(raw, out, plt, seed=seed),
-                 _clutter_failures_figure(raw, out, plt, seed=seed)):
-        if path is not None:
-            written.append(path)
+    grasps = _grasp_figure(raw, out, plt)
+    written += [] if grasps is None else [grasps]
+    for table in TABLES:
+        written += table.figures(raw, out, plt, seed=results["config"]["seed"])
     return written
 
 
 #: Examples shown in grasps.png (main table first: camera pan, hiding, reveal).
 GRASP_FIGURE_EXAMPLES = 3
-
-
-#: Failed true-mesh grasps of the benchmark shown in benchmark_failures.png, at most.
-FAILURE_FIGURE_EXAMPLES = 12
-
-
-def _benchmark_failures_figure(
-    raw: list[SequenceResult], out: Path, plt, *, seed: int
-) -> Path | None:
-    """benchmark_failures.png: the benchmark's true-mesh grasps that failed the lift test, each
-    the object on a patch of its table and the hand as planned, with why it failed (objects with
-    no grasp planned are listed in results.md instead)."""
-    from grasp.evaluate.benchmark import resting_object
-
-    def scene(r: SequenceResult):
-        return [resting_object(r.object_ids[0], r.job.index, seed)[0]]
-
-    def title(r: SequenceResult, record: dict) -> str:
-        return f"{r.object_ids[0]} ({r.benchmark['mass_kg']:.2f} kg, {record['kind']}): "
-
-    return _failures_figure(raw, out, plt, BENCHMARK_TABLE, "true_mesh", scene, title,
-                            "Benchmark: the true-mesh grasps that failed the lift test (hand as "
-                            "planned)", "benchmark_failures.png")
-
-
-def _clutter_failures_figure(
-    raw: list[SequenceResult], out: Path, plt, *, seed: int
-) -> Path | None:
-    """clutter_failures.png: the clutter table's grasps from MVP's views with the obstacles
-    that failed (the target dropped or a neighbour knocked), the target and its neighbours on a
-    patch of the table and the hand where it closed."""
-    from grasp.evaluate.clutter import scene_objects
-
-    def scene(r: SequenceResult):
-        _, target, _, neighbours, _, _ = scene_objects(r.job.index, seed)
-        return [target, *neighbours]
-
-    def title(r: SequenceResult, record: dict) -> str:
-        shaped = f", pre-shaped {record['preshape_deg']:.0f}°" if record["preshape_deg"] else ""
-        return f"{r.object_ids[0]} ({record['kind']}{shaped}): "
-
-    return _failures_figure(raw, out, plt, CLUTTER_TABLE, "mvp_4views_obstacles", scene, title,
-                            "Clutter: MVP's grasps with the seen obstacles that failed (hand "
-                            "where it closed)", "clutter_failures.png", key="success")
-
-
-def _failures_figure(raw, out: Path, plt, table: str, row: str, scene, title, heading: str,
-                     name: str, key: str = "held") -> Path | None:
-    """A figure of ``table``'s ``row`` grasps whose ``key`` is false (at most
-    :data:`FAILURE_FIGURE_EXAMPLES`), each the meshes ``scene(r)`` gives on a patch of the
-    table and the hand as planned, titled ``title(r, record)`` and the reason."""
-    import textwrap
-
-    from grasp.autograsp import GraspResult, HandDofs, HandJoints
-    from grasp.render import render_grasp
-
-    failed = [r for r in raw if r.job.table == table and "palm_pose" in r.benchmark.get(
-        "rows", {}).get(row, {}) and not r.benchmark["rows"][row][key]]
-    failed = failed[:FAILURE_FIGURE_EXAMPLES]
-    if not failed:
-        return None
-    cols = min(4, len(failed))
-    rows = -(-len(failed) // cols)
-    fig, axes = plt.subplots(rows, cols, figsize=(3.2 * cols, 3.6 * rows), squeeze=False,
-                             layout="constrained")
-    for ax in axes.flat:
-        ax.axis("off")
-    for ax, r in zip(axes.flat, failed, strict=False):
-        record = r.benchmark["rows"][row]
-        meshes = scene(r)
-        ax.set_title(textwrap.fill(title(r, record) + record["reason"], 44), fontsize=7)
-        lo, hi = trimesh.util.concatenate(meshes).bounds
-        patch = trimesh.creation.box([1.2 * (hi - lo)[0] + 0.02, 1.2 * (hi - lo)[1] + 0.02,
-                                      0.002])
-        patch.apply_translation([(lo[0] + hi[0]) / 2, (lo[1] + hi[1]) / 2, -0.001])
-        palm = record.get("end_palm_pose", record["palm_pose"])  # where the fingers closed
-        hand = GraspResult(False, record["reason"], np.asarray(palm),
-                           HandJoints(*record["planned_joints_deg"]),
-                           HandDofs(record["planned_joints_deg"][0], 0.0, 0.0, 0.0))
-        with quiet_fds(1):
-            image = render_grasp(trimesh.util.concatenate([*meshes, patch]), hand, width=260,
-                                 height=260)[0]
-        ax.imshow(image)
-    fig.suptitle(heading, fontsize=9)
-    path = out / name
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
-    return path
 
 
 def _grasp_result(summary: dict):

@@ -8,15 +8,9 @@ from dataclasses import dataclass, field
 
 from grasp.evaluate.config import Job
 
-STAGES: tuple[str, ...] = (
-    "generation",
-    "inference",
-    "completion_metrics",
-    "grasping",
-    "physics",
-    "benchmark",
-    "clutter",
-)
+#: The stages of the main table's scoring (a table with work of its own declares its stages:
+#: :attr:`grasp.evaluate.tables.base.Table.stages`).
+STAGES: tuple[str, ...] = ("generation", "inference", "completion_metrics", "grasping", "physics")
 
 
 @dataclass
@@ -31,9 +25,9 @@ class Timings:
     cpu: dict[str, float] = field(default_factory=lambda: dict.fromkeys(STAGES, 0.0))
 
     def add(self, other: Timings) -> None:
-        for stage in STAGES:
-            self.wall[stage] += other.wall[stage]
-            self.cpu[stage] += other.cpu[stage]
+        for mine, theirs in ((self.wall, other.wall), (self.cpu, other.cpu)):
+            for stage, seconds in theirs.items():
+                mine[stage] = mine.get(stage, 0.0) + seconds
 
 
 class StageClock:
@@ -45,8 +39,8 @@ class StageClock:
 
     def charge(self, stage: str) -> None:
         wall, cpu = time.perf_counter(), time.process_time()
-        self.timings.wall[stage] += wall - self.wall
-        self.timings.cpu[stage] += cpu - self.cpu
+        self.timings.wall[stage] = self.timings.wall.get(stage, 0.0) + wall - self.wall
+        self.timings.cpu[stage] = self.timings.cpu.get(stage, 0.0) + cpu - self.cpu
         self.wall, self.cpu = wall, cpu
 
 
@@ -67,9 +61,9 @@ class SequenceResult:
     # below_plane -> the target's share below the support plane (scenes with one)
     ceiling: dict[str, list[float]] = field(default_factory=dict)
     elevation_deg: list[float] = field(default_factory=list)  # the camera's, per view
-    # the benchmark's object record (grasp.evaluate.benchmark.object_record) or the clutter
-    # table's scene record: "rows": row -> outcome
-    benchmark: dict = field(default_factory=dict)
+    # a table's own record of the job, as its module declares it (the benchmark's object
+    # record, the clutter table's scene record: "rows": row -> outcome)
+    record: dict = field(default_factory=dict)
 
 
 def key_seed(*parts: object) -> int:

@@ -4,10 +4,11 @@ timings."""
 
 from __future__ import annotations
 
-from grasp.evaluate.aggregate import per_object_records
-from grasp.evaluate.config import PAPER_TABLES, Settings, config_dict
-from grasp.evaluate.records import SequenceResult, Timings
-from grasp.evaluate.tables import TABLES
+from dataclasses import asdict
+
+from grasp.evaluate.config import EVAL_SPLITS, PAPER_TABLES, Settings
+from grasp.evaluate.records import STAGES, SequenceResult, Timings
+from grasp.evaluate.tables import BY_NAME, OPTIONS, TABLES
 
 
 def build_results(results: list[SequenceResult], settings: Settings, wall: dict) -> dict:
@@ -18,14 +19,31 @@ def build_results(results: list[SequenceResult], settings: Settings, wall: dict)
     out: dict = {}
     for table in TABLES:  # each table's own entries, the main table's first
         out.update(table.summarise(results, settings))
+    stages = [*STAGES, *(stage for table in TABLES for stage in table.stages)]
     out |= {
-        "per_object": per_object_records(results, settings),
+        "per_object": [record for r in results
+                       for record in BY_NAME[r.job.table].records(r, settings)],
         "config": config_dict(settings),
         "paper_tables": PAPER_TABLES,
         "timings_s": {
-            "stages_wall_summed_over_sequences": {k: round(v, 2) for k, v in timings.wall.items()},
-            "stages_cpu_summed_over_sequences": {k: round(v, 2) for k, v in timings.cpu.items()},
+            "stages_wall_summed_over_sequences": {k: round(timings.wall.get(k, 0.0), 2)
+                                                  for k in stages},
+            "stages_cpu_summed_over_sequences": {k: round(timings.cpu.get(k, 0.0), 2)
+                                                 for k in stages},
             "wall": {k: round(v, 2) for k, v in wall.items()},
         },
     }
     return out
+
+
+def config_dict(settings: Settings) -> dict:
+    """results.json's ``config``: the settings as plain JSON, each table's option under its name
+    (its default where the settings name none)."""
+    d = asdict(settings)
+    del d["options"]
+    d |= {name: option.of(settings) for name, option in OPTIONS.items()}
+    d["model_paths"] = dict(settings.model_paths)
+    d["objects"] = list(settings.objects)
+    d["fscore_fractions"] = [0.01, 0.02]
+    d["splits"] = list(EVAL_SPLITS)
+    return d

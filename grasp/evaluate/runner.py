@@ -25,7 +25,7 @@ from grasp.evaluate.config import (
 )
 from grasp.evaluate.records import SequenceResult, StageClock, Timings, key_seed
 from grasp.evaluate.rows import load_models, make_rows
-from grasp.evaluate.tables import BY_NAME, TABLES
+from grasp.evaluate.tables import BY_NAME, TABLES, check_options
 from grasp_client.wire import SupportPlane
 
 # ------------------------------------------------------------------------------ per-sequence work
@@ -223,4 +223,5 @@ class Evaluator:
 def make_jobs(settings: Settings) -> list[Job]:
     """Every sequence of the run, in a fixed order (results do not depend on the workers): each
     table's of :data:`grasp.evaluate.tables.TABLES` in turn."""
+    check_options(settings)
     return [job for table in TABLES for job in table.jobs(settings)]

@@ -6,7 +6,7 @@ from completion.objects import mesh_from_spec
 from grasp.physics.lift import lift_test
 from grasp.physics.settings import APPROACHES, DENSITY_KG_M3
 from grasp.quality import MU_RUBBER
-from grasp.table import SupportPlane
+from grasp_client.wire import SupportPlane
 
 
 def main(argv: list[str] | None = None) -> int:

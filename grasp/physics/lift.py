@@ -24,7 +24,8 @@ from grasp.physics.settings import (
 )
 from grasp.physics.world import DynamicWorld
 from grasp.quality import MU_RUBBER
-from grasp.table import SupportPlane, to_upright
+from grasp.table import to_upright
+from grasp_client.wire import SupportPlane
 from hands.barrett import BH8_282, BarrettParams
 from hands.barrett.kinematics import joints_from_dofs
 

@@ -1,30 +1,65 @@
-"""What a table of the evaluation is: the jobs it needs, how it scores one, what it puts in
-results.json and how it writes its part of results.md."""
+"""What a table of the evaluation is: its command-line options, the jobs it needs, how it scores
+one and what it keeps of it, what it puts in results.json and results.md, and its figures."""
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import KW_ONLY, dataclass
+from pathlib import Path
 from typing import Any
 
+from grasp.evaluate.aggregate import sequence_records
 from grasp.evaluate.config import Job, Settings
 from grasp.evaluate.records import SequenceResult
 
 
 @dataclass(frozen=True)
-class Sizing:
-    """How a table with a size of its own is sized: the option ``--<name>`` (``help``: what it
-    counts) and its size per preset (``--quick``, the default, ``--full``); 0 leaves it out.
-    The command line (:mod:`grasp.evaluate.cli`) and the run's :class:`~grasp.evaluate.config.
-    Settings` (``sizes``, by the table's name) take it from here."""
+class Option:
+    """An integer option of a table, ``--<name>`` (underscores written as dashes): what it sets
+    (``help``), its value per preset (``--quick``, the default, ``--full``; the default in all
+    three when ``quick`` and ``full`` are None), the least value it takes, the value of the
+    option given alone (``bare``; None: it needs a value), the option whose value it takes when
+    that one is given and it is not (``follows``), and whether ``--no-<name>`` sets it to 0.
+    The command line (:mod:`grasp.evaluate.cli`) adds it and fills the run's
+    :class:`~grasp.evaluate.config.Settings` (``options``, by name); :meth:`of` reads it back."""
 
+    name: str
     help: str
-    quick: int
+    _: KW_ONLY
     default: int
-    full: int
+    quick: int | None = None
+    full: int | None = None
+    least: int = 0
+    bare: int | None = None
+    follows: str | None = None
+    negatable: bool = False
+
+    @property
+    def flag(self) -> str:
+        return "--" + self.name.replace("_", "-")
 
     def preset(self, name: str) -> int:
-        """The size of preset ``name`` ("quick", "default" or "full")."""
-        return getattr(self, name)
+        """Its value in preset ``name`` ("quick", "default" or "full")."""
+        value = getattr(self, name)
+        return self.default if value is None else value
+
+    def of(self, settings: Settings) -> int:
+        """Its value in a run: what the settings give it, else its default."""
+        return dict(settings.options).get(self.name, self.default)
+
+    def help_text(self) -> str:
+        """``help`` and where its value comes from, read from the fields (so it cannot drift)."""
+        if self.quick is None and self.full is None:
+            where = f"default {self.default}"
+        else:
+            where = (f"default {self.default}, {self.preset('quick')} with --quick, "
+                     f"{self.preset('full')} with --full")
+        if self.least == 0:
+            where = "0 = none; " + where
+        if self.bare is not None:
+            where += f"; {self.flag} alone: {self.bare}"
+        if self.follows is not None:
+            where += f"; with --{self.follows.replace('_', '-')} N and no {self.flag}: N"
+        return f"{self.help} ({where})"
 
 
 class Table:
@@ -32,17 +67,15 @@ class Table:
     results.md places it, after a part of the main table's (:mod:`grasp.evaluate.tables.main`):
     ``"jaccard"`` (Table I and its precision), ``"grasps"`` (grasp success) or ``"objects"``
     (the grasps left out), before the timings. A table that scores its jobs like the main
-    table's keeps :meth:`run`; one that does not overrides it."""
+    table's keeps :meth:`run`, :meth:`records` and :attr:`stages`; one that does not overrides
+    them (its own per-job record in :attr:`SequenceResult.record`, its timed stages)."""
 
     name: str = ""
     section: str = "objects"
-    #: its own size (None: sized by the main table's options)
-    sizing: Sizing | None = None
-
-    def size(self, settings: Settings) -> int:
-        """How many jobs the run asks of it (its :attr:`sizing`): the run's size for its name,
-        else its default."""
-        return settings.size(self.name, self.sizing.default)
+    #: its own command-line options (none: sized by the main table's, :mod:`grasp.evaluate.cli`)
+    options: tuple[Option, ...] = ()
+    #: the stages its :meth:`run` charges beyond the main table's (records.STAGES), in order
+    stages: tuple[str, ...] = ()
 
     def jobs(self, settings: Settings) -> list[Job]:
         return []
@@ -56,6 +89,23 @@ class Table:
         """The results.json entries this table owns (every key, None when it has nothing)."""
         return {}
 
+    def records(self, result: SequenceResult, settings: Settings) -> list[dict]:
+        """results.json's ``per_object`` records of one of its jobs: by default one per row, as
+        the main table's (:func:`grasp.evaluate.aggregate.sequence_records`)."""
+        return sequence_records(result, settings)
+
     def markdown(self, results: dict) -> list[str]:
         """Its lines of results.md (none when results.json has nothing of it)."""
         return []
+
+    def figures(self, raw: list[SequenceResult], out: Path, plt: Any, *, seed: int) -> list[Path]:
+        """The figures of its own it writes in ``out`` (``plt``: matplotlib.pyplot), if any."""
+        return []
+
+
+def rows_record(result: SequenceResult) -> list[dict]:
+    """The one ``per_object`` record of a job whose :attr:`SequenceResult.record` holds each
+    row's outcome under ``"rows"`` (the benchmark's object, the clutter table's scene)."""
+    r = result
+    return [{"table": r.job.table, "index": r.job.index, "object_ids": r.object_ids,
+             "benchmark": r.record["rows"]}]

@@ -3,6 +3,7 @@ lift-tested (the scenes and the lift tests: :mod:`grasp.evaluate.benchmark`)."""
 
 from __future__ import annotations
 
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -11,8 +12,9 @@ from completion.bullet import quiet_fds
 from grasp.evaluate import benchmark as b
 from grasp.evaluate.cells import fmt
 from grasp.evaluate.config import BENCHMARK_TABLE, FUSION, GRASP_SUCCESS, Job, Settings
+from grasp.evaluate.failure_figures import failures_figure
 from grasp.evaluate.records import SequenceResult, StageClock, Timings, key_seed
-from grasp.evaluate.tables.base import Table
+from grasp.evaluate.tables.base import Option, Table, rows_record
 from grasp.verify import DEFAULT_VERIFY
 
 LABELS = {
@@ -27,22 +29,37 @@ LABELS = {
 }
 
 
+#: ``--benchmark N``: the objects; ``--verified N``: how many of them get the verified rows;
+#: ``--benchmark-verify N``: the grasps those try; ``--benchmark-candidates N``: the planner's
+#: candidates (the clutter table's too).
+SIZE = Option(BENCHMARK_TABLE, "objects of the grasp-success benchmark (objects on a table, "
+              "grasped from 1 or 4 views, lift-tested)", quick=1, default=30, full=100, bare=100)
+VERIFIED = Option("verified", "of the benchmark's objects, how many also get the verified rows "
+                  "(the best grasps lift-tested on the planned mesh before the top one is "
+                  "chosen)", quick=1, default=10, full=100, follows=BENCHMARK_TABLE)
+VERIFY = Option("benchmark_verify", "grasps the verified rows try at most, until one holds in "
+                "every trial", default=4, least=1)
+CANDIDATES = Option("benchmark_candidates", "planner candidates of the benchmark's and the "
+                    "clutter table's grasps, as many as the service plans", default=64, least=1)
+
+
 class BenchmarkTable(Table):
     name, section = BENCHMARK_TABLE, "grasps"
+    options, stages = (SIZE, VERIFIED, VERIFY, CANDIDATES), ("benchmark",)
 
     def jobs(self, settings: Settings) -> list[Job]:
-        if not settings.benchmark:
+        count = SIZE.of(settings)
+        if not count:
             return []
         return [Job(BENCHMARK_TABLE, "tabletop", "test", index, pool=(object_id,))
-                for index, object_id in enumerate(b.benchmark_objects(settings.benchmark,
-                                                                      settings.seed))]
+                for index, object_id in enumerate(b.benchmark_objects(count, settings.seed))]
 
     def rows(self, evaluator: Any, job: Job) -> list[str]:
         """The benchmark rows this run's models allow (the true mesh always); the verified rows
-        for the first ``settings.verified`` objects."""
+        for the first ``--verified`` objects."""
         def runs(row: str) -> bool:
             source = b.ROW_SOURCES[row][0]
-            if row in b.VERIFIED_ROWS and job.index >= evaluator.settings.verified:
+            if row in b.VERIFIED_ROWS and job.index >= VERIFIED.of(evaluator.settings):
                 return False
             if source == "fusion":
                 return FUSION in evaluator.settings.rows and "mvp" in evaluator.models
@@ -59,20 +76,23 @@ class BenchmarkTable(Table):
         seed = key_seed(s.seed, job.table, job.index)
         with quiet_fds(1):
             outcome = b.run_object(scene, evaluator.models, self.rows(evaluator, job),
-                                   candidates=s.benchmark_candidates, seed=seed,
-                                   verify=s.benchmark_verify)
+                                   candidates=CANDIDATES.of(s), seed=seed,
+                                   verify=VERIFY.of(s))
         clock.charge("benchmark")
         record = b.object_record(object_id, scene.mesh, outcome)
-        return SequenceResult(job, [object_id], {}, timings=timings, benchmark=record)
+        return SequenceResult(job, [object_id], {}, timings=timings, record=record)
+
+    def records(self, result: SequenceResult, settings: Settings) -> list[dict]:
+        return rows_record(result)
 
     def summarise(self, results: list[SequenceResult], settings: Settings) -> dict:
         """``grasp_benchmark`` (:func:`grasp.evaluate.benchmark.summarise`; None without a
         benchmark) and ``grasp_benchmark_objects``, one record per object."""
         mine = [r for r in results if r.job.table == BENCHMARK_TABLE]
-        rows = [row for row in b.BENCHMARK_ROWS if any(row in r.benchmark["rows"] for r in mine)]
-        return {"grasp_benchmark": b.summarise([r.benchmark["rows"] for r in mine], rows)
+        rows = [row for row in b.BENCHMARK_ROWS if any(row in r.record["rows"] for r in mine)]
+        return {"grasp_benchmark": b.summarise([r.record["rows"] for r in mine], rows)
                 if mine else None,
-                "grasp_benchmark_objects": [r.benchmark for r in mine]}
+                "grasp_benchmark_objects": [r.record for r in mine]}
 
     def markdown(self, results: dict) -> list[str]:
         """Held/tested with the 95 % interval, the planned-vs-executed joints and the failures."""
@@ -117,6 +137,21 @@ class BenchmarkTable(Table):
                              f"{o.get('kind', '—')} | {o['reason']} |")
             lines.append("")
         return lines + _flat(records)
+
+    def figures(self, raw: list[SequenceResult], out: Path, plt: Any, *, seed: int) -> list[Path]:
+        """benchmark_failures.png: the true-mesh grasps that failed the lift test, each the
+        object on a patch of its table and the hand as planned, with why it failed (objects
+        with no grasp planned are listed in results.md instead)."""
+        def scene(r: SequenceResult):
+            return [b.resting_object(r.object_ids[0], r.job.index, seed)[0]]
+
+        def title(r: SequenceResult, outcome: dict) -> str:
+            return f"{r.object_ids[0]} ({r.record['mass_kg']:.2f} kg, {outcome['kind']}): "
+
+        path = failures_figure(raw, out, plt, BENCHMARK_TABLE, "true_mesh", scene, title,
+                               "Benchmark: the true-mesh grasps that failed the lift test (hand "
+                               "as planned)", "benchmark_failures.png")
+        return [] if path is None else [path]
 
 
 def _flat(records: list[dict]) -> list[str]:

@@ -4,6 +4,7 @@ obstacles and without, lift-tested with the neighbours standing by (the scenes a
 
 from __future__ import annotations
 
+from pathlib import Path
 from typing import Any
 
 from completion.bullet import quiet_fds
@@ -11,8 +12,10 @@ from grasp.evaluate import clutter as c
 from grasp.evaluate.benchmark import _reason_kind, wilson
 from grasp.evaluate.cells import fmt
 from grasp.evaluate.config import CLUTTER_TABLE, GRASP_SUCCESS, Job, Settings
+from grasp.evaluate.failure_figures import failures_figure
 from grasp.evaluate.records import SequenceResult, StageClock, Timings, key_seed
-from grasp.evaluate.tables.base import Sizing, Table
+from grasp.evaluate.tables.base import Option, Table, rows_record
+from grasp.evaluate.tables.benchmark import CANDIDATES
 
 LABELS = {
     "true_meshes": "True meshes (target and neighbours known)",
@@ -21,15 +24,18 @@ LABELS = {
 }
 
 
+#: ``--clutter N``: the scenes.
+SIZE = Option(CLUTTER_TABLE, "scenes of the clutter table (a target among 2-5 neighbours on a "
+              "table, planned with the seen neighbours as obstacles and without; lift-tested with "
+              "the neighbours)", quick=1, default=4, full=50)
+
+
 class ClutterTable(Table):
-    name, section = CLUTTER_TABLE, "grasps"
-    sizing = Sizing("scenes of the clutter table (a target among 2-5 neighbours on a table, "
-                    "planned with the seen neighbours as obstacles and without; lift-tested with "
-                    "the neighbours)", quick=1, default=4, full=50)
+    name, section, options, stages = CLUTTER_TABLE, "grasps", (SIZE,), ("clutter",)
 
     def jobs(self, settings: Settings) -> list[Job]:
         return [Job(CLUTTER_TABLE, "tabletop", "test", index)
-                for index in range(self.size(settings))]
+                for index in range(SIZE.of(settings))]
 
     def run(self, evaluator: Any, job: Job) -> SequenceResult:
         s = evaluator.settings
@@ -39,18 +45,21 @@ class ClutterTable(Table):
         rows = [r for r in c.CLUTTER_ROWS if r == "true_meshes" or "mvp" in evaluator.models]
         with quiet_fds(1):
             outcome = c.run_scene(scene, evaluator.models, rows,
-                                  candidates=s.benchmark_candidates,
+                                  candidates=CANDIDATES.of(s),
                                   seed=key_seed(s.seed, job.table, job.index))
         clock.charge("clutter")
         record = {"id": scene.target_id, "neighbours": scene.neighbour_ids,
                   "gaps_m": [round(g, 4) for g in scene.gaps_m], "rows": outcome}
         return SequenceResult(job, [scene.target_id, *scene.neighbour_ids], {},
-                              timings=timings, benchmark=record)
+                              timings=timings, record=record)
+
+    def records(self, result: SequenceResult, settings: Settings) -> list[dict]:
+        return rows_record(result)
 
     def summarise(self, results: list[SequenceResult], settings: Settings) -> dict:
         """``clutter`` (row -> success, tested, the 95 % interval, the failures; None without
         scenes) and ``clutter_scenes``, one record per scene."""
-        mine = [r.benchmark for r in results if r.job.table == CLUTTER_TABLE]
+        mine = [r.record for r in results if r.job.table == CLUTTER_TABLE]
         if not mine:
             return {"clutter": None, "clutter_scenes": []}
         block = {}
@@ -105,6 +114,24 @@ class ClutterTable(Table):
                          f"{failures} |")
         return lines + ["", "clutter_failures.png shows the failed grasps of MVP's row with the "
                         "obstacles: the target, its neighbours and the hand where it closed.", ""]
+
+    def figures(self, raw: list[SequenceResult], out: Path, plt: Any, *, seed: int) -> list[Path]:
+        """clutter_failures.png: MVP's grasps with the seen obstacles that failed (the target
+        dropped or a neighbour knocked), the target and its neighbours on a patch of the table
+        and the hand where it closed."""
+        def scene(r: SequenceResult):
+            _, target, _, neighbours, _, _ = c.scene_objects(r.job.index, seed)
+            return [target, *neighbours]
+
+        def title(r: SequenceResult, outcome: dict) -> str:
+            shaped = (f", pre-shaped {outcome['preshape_deg']:.0f}°" if outcome["preshape_deg"]
+                      else "")
+            return f"{r.object_ids[0]} ({outcome['kind']}{shaped}): "
+
+        path = failures_figure(raw, out, plt, CLUTTER_TABLE, "mvp_4views_obstacles", scene,
+                               title, "Clutter: MVP's grasps with the seen obstacles that failed "
+                               "(hand where it closed)", "clutter_failures.png", key="success")
+        return [] if path is None else [path]
 
 
 TABLE = ClutterTable()

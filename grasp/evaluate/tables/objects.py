@@ -17,18 +17,23 @@ from grasp.evaluate.config import (
     Settings,
 )
 from grasp.evaluate.records import SequenceResult
-from grasp.evaluate.tables.base import Table
+from grasp.evaluate.tables.base import Option, Table
+
+#: ``--named N``: the named objects evaluated.
+NAMED_SIZE = Option(NAMED_OBJECTS_TABLE, "held-out named pybullet_data objects to evaluate",
+                    quick=3, default=5, full=10)
 
 
 class ObjectTable(Table):
     section = "objects"
 
-    def __init__(self, name: str, key: str, title: str) -> None:
+    def __init__(self, name: str, key: str, title: str, options: tuple[Option, ...] = ()) -> None:
         self.name, self.key, self.title = name, key, title  # key: its results.json entry
+        self.options = options
 
     def objects(self, settings: Settings) -> list[str]:
         if self.name == NAMED_OBJECTS_TABLE:
-            return object_ids("test", sources=("named",))[: settings.named]
+            return object_ids("test", sources=("named",))[: NAMED_SIZE.of(settings)]
         return list(settings.objects)
 
     def jobs(self, settings: Settings) -> list[Job]:
@@ -90,5 +95,6 @@ def markdown_object_table(block: dict) -> str:
     return "\n".join(lines)
 
 
-NAMED = ObjectTable(NAMED_OBJECTS_TABLE, "named_objects", "Held-out named pybullet_data objects")
+NAMED = ObjectTable(NAMED_OBJECTS_TABLE, "named_objects", "Held-out named pybullet_data objects",
+                    (NAMED_SIZE,))
 FOLDER = ObjectTable(FOLDER_TABLE, "objects_dir", "Objects from --objects")

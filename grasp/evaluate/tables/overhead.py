@@ -9,23 +9,25 @@ from typing import Any
 from grasp.evaluate.cells import fmt, mean_or_none
 from grasp.evaluate.config import ROW_LABELS, Job, Settings
 from grasp.evaluate.records import SequenceResult
-from grasp.evaluate.tables.base import Sizing, Table
+from grasp.evaluate.tables.base import Option, Table
 
 OVERHEAD_TABLE = "overhead"
 #: A view counts as from above at this elevation (degrees) or more.
 OVERHEAD_MIN_ELEVATION_DEG = 75.0
+#: ``--overhead N``: tabletop test sequences searched.
+SIZE = Option(OVERHEAD_TABLE, "tabletop test sequences searched for overhead views (elevation ≥ "
+              "75°) for the share of the completion below the table", quick=2, default=30,
+              full=200)
 
 
 class OverheadTable(Table):
-    name, section = OVERHEAD_TABLE, "jaccard"
-    sizing = Sizing("tabletop test sequences searched for overhead views (elevation ≥ 75°) for "
-                    "the share of the completion below the table", quick=2, default=30, full=200)
+    name, section, options = OVERHEAD_TABLE, "jaccard", (SIZE,)
 
     def jobs(self, settings: Settings) -> list[Job]:
         if "tabletop" not in settings.conditions:
             return []
         return [Job(OVERHEAD_TABLE, "tabletop", "test", index, light=True)
-                for index in range(self.size(settings))]
+                for index in range(SIZE.of(settings))]
 
     def run(self, evaluator: Any, job: Job) -> SequenceResult:
         """Scored only when a view is from above (searched, none: nothing reaches the table)."""

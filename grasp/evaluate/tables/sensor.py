@@ -17,18 +17,22 @@ from grasp.evaluate.config import (
     Settings,
 )
 from grasp.evaluate.records import SequenceResult
-from grasp.evaluate.tables.base import Table
+from grasp.evaluate.tables.base import Option, Table
+
+#: ``--sensor N`` (``--no-sensor``: 0): test sequences per condition.
+SIZE = Option(SENSOR_TABLE, "test sequences per condition seen with and without the sensor model, "
+              "paired (Jaccard)", quick=1, default=5, full=50, negatable=True)
 
 
 class SensorTable(Table):
-    name, section = SENSOR_TABLE, "jaccard"
+    name, section, options = SENSOR_TABLE, "jaccard", (SIZE,)
 
     def jobs(self, settings: Settings) -> list[Job]:
         """Each condition with and without the sensor model, the same sequences; the main table
         has one side of the first ``count`` of them (noiseless for the paper's five)."""
         jobs = []
         for condition in settings.conditions:
-            for index in range(settings.sensor):
+            for index in range(SIZE.of(settings)):
                 for noise in (True, False):
                     if noise != (condition in NOISY_BY_DEFAULT) or index >= settings.count:
                         jobs.append(Job(SENSOR_TABLE, condition, "test", index, noise=noise,
@@ -36,7 +40,7 @@ class SensorTable(Table):
         return jobs
 
     def summarise(self, results: list[SequenceResult], settings: Settings) -> dict:
-        """``sensor_noise``: the test split's first ``settings.sensor`` sequences of each
+        """``sensor_noise``: the test split's first ``--sensor`` sequences of each
         condition seen through the sensor model (``jaccard``) and the very same sequences without
         it (``noiseless``), each a mean ± SE per row and condition, and their paired
         ``difference`` (mean ± SE of the per-sequence differences); None when the run has no
@@ -50,7 +54,7 @@ class SensorTable(Table):
         sides: dict[tuple[str, bool], dict[int, SequenceResult]] = {}
         for r in results:
             main = r.job.table == MAIN_TABLE and r.job.split == "test"
-            if r.job.table == SENSOR_TABLE or (main and r.job.index < settings.sensor):
+            if r.job.table == SENSOR_TABLE or (main and r.job.index < SIZE.of(settings)):
                 sides.setdefault((r.job.condition, noisy(r)), {})[r.job.index] = r
         conditions = sorted({c for c, _ in sides}, key=CONDITIONS.index)
         out: dict = {"split": "test", "jaccard": {}, "noiseless": {}, "difference": {}, "n": {}}
