@@ -102,7 +102,7 @@ _WORKER_RENDERER = None
 def _render(job: tuple) -> Sequence:
     """Worker: render one sequence (one pybullet client per process)."""
     global _WORKER_RENDERER
-    from completion.render import Renderer
+    from completion.depth_camera import Renderer
 
     condition, split, index, seed, _, views, noise, keep_depth = job
     if _WORKER_RENDERER is None:
@@ -252,7 +252,7 @@ def main(argv: list[str] | None = None) -> int:
                    "(pip install -e '.[cluster]')")
     g.add_argument("--views", type=_positive, default=VIEWS)
     g.add_argument("--noise", choices=("auto", "on", "off"), default="auto",
-                   help="the sensor model (completion.render.SensorModel): auto = on for "
+                   help="the sensor model (completion.depth_camera.SensorModel): auto = on for "
                    "tabletop only, on = every condition, off = none")
     g.add_argument("--keep-depth", action="store_true", help="store depth and mask images too")
     s = sub.add_parser("show",

@@ -2,7 +2,7 @@
 
 A real depth camera does not only add noise: where a foreground surface meets a far background,
 the returns of both mix and a pixel lands somewhere between them (a *flying pixel*, or veil
-point), floating behind the object's silhouette (:class:`completion.render.SensorModel` draws
+point), floating behind the object's silhouette (:class:`completion.depth_camera.SensorModel` draws
 them; a real D415 or Kinect shows the same). Left in, they stretch the grid fitted to the points
 and are completed as object. Two rules remove them, the same for the training data, the
 evaluation and the service (every depth image becomes points through

@@ -31,7 +31,7 @@ every point seen from it) and voxelizes the observed points (input) and the comp
   over the sequence, the elevation moving by up to 20°, the distance shrinking by up to 30 %).
   The table is rendered (it occludes, and the sensor's edges form against it) but the mask
   excludes it, as a segmentation would: the input is the object's points, the target the object
-  alone. The sensor model (:class:`completion.render.SensorModel`) is on by default.
+  alone. The sensor model (:class:`completion.depth_camera.SensorModel`) is on by default.
 """
 
 from __future__ import annotations
@@ -46,8 +46,8 @@ import trimesh
 
 from completion import grid
 from completion.depth import DEPTH_FILTER, DepthFilter
+from completion.depth_camera import Renderer, SensorModel, look_at
 from completion.objects import SPLITS, load_object, object_ids
-from completion.render import Renderer, SensorModel, look_at
 from grasp_client.wire import SupportPlane
 
 CONDITIONS: tuple[str, ...] = (

@@ -111,7 +111,7 @@ def seen_others(others: np.ndarray, target: np.ndarray, plane: SupportPlane) -> 
     above the table ``plane`` (world frame) by :data:`ABOVE_TABLE_M`, within
     :data:`REACH_M` of the target's points ``target`` ((n, 3), world) along the table, and not
     within :data:`TARGET_MARGIN_M` of them. One rule for the service's views and the
-    evaluation's (:func:`grasp.evaluate.clutter.seen_obstacles`)."""
+    evaluation's (:func:`grasp.evaluate.clutter_scenes.seen_obstacles`)."""
     others = np.asarray(others, dtype=np.float64).reshape(-1, 3)
     target = np.asarray(target, dtype=np.float64).reshape(-1, 3)
     if len(others) == 0 or len(target) == 0:

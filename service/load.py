@@ -138,13 +138,13 @@ def make_bodies(
 
 
 def clutter_views(index: int, seed: int, views: int) -> list[dict]:
-    """The clutter table's scene ``index`` (:func:`grasp.evaluate.clutter.clutter_scene`: a
+    """The clutter table's scene ``index`` (:func:`grasp.evaluate.clutter_scenes.clutter_scene`: a
     target among 2-5 neighbours on a table) as view bodies: each a depth PNG with a label image
     (the target 1, the neighbours 2, the rest 0), its camera pose, the table with the first.
     The scene has 4 views; more are its pan again."""
-    from completion.render import Renderer
+    from completion.depth_camera import Renderer
     from completion.scenes import TABLE_PLANE
-    from grasp.evaluate.clutter import clutter_scene
+    from grasp.evaluate.clutter_scenes import clutter_scene
     from grasp_client.wire import depth_png16_mm, intrinsics_field
 
     renderer = Renderer()

@@ -1,12 +1,12 @@
-"""The clutter table's scenes (grasp.evaluate.clutter, issue 61): a target among neighbours at
-gaps that matter to the hand, what the camera sees of the neighbours, and the table's rows."""
+"""The clutter table's scenes (grasp.evaluate.clutter_scenes, issue 61): a target among neighbours
+at gaps that matter to the hand, what the camera sees of the neighbours, and the table's rows."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from grasp.evaluate import clutter as c
+from grasp.evaluate import clutter_scenes as c
 
 
 def _gap(a, b) -> float:
@@ -32,7 +32,7 @@ def test_neighbours_stand_2_to_10_cm_from_the_target_and_apart(index):
 def test_the_obstacles_seen_are_the_neighbours_not_the_target():
     from trimesh.proximity import closest_point
 
-    from completion.render import Renderer
+    from completion.depth_camera import Renderer
 
     renderer = Renderer()
     try:

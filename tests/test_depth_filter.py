@@ -9,7 +9,7 @@ import trimesh
 
 from completion import grid
 from completion.depth import DEPTH_FILTER, DepthFilter
-from completion.render import Renderer, SensorModel
+from completion.depth_camera import Renderer, SensorModel
 
 INTRINSICS = grid.DEFAULT_INTRINSICS
 FLYING_ONLY = SensorModel(sigma_base=0.0, sigma_quadratic=0.0, edge_hole=0.0, subpixel=0,

@@ -18,8 +18,8 @@ from completion.model import WEIGHTS_DIR, build_model, save_checkpoint
 from completion.scenes import CONDITIONS, SINGLE_OBJECT_CONDITIONS
 from grasp import evaluate as ev
 from grasp.evaluate.aggregate import aggregate
-from grasp.evaluate.records import SequenceResult
 from grasp.evaluate.runner import Evaluator
+from grasp.evaluate.sequence_result import SequenceResult
 from hands.barrett import JOINT_NAMES
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -556,7 +556,7 @@ def test_grasp_summary_keeps_a_pose_the_figure_can_re_run():
 
 
 def test_timings_header_names_the_workers_in_plain_english():
-    from grasp.evaluate.report import markdown_timings
+    from grasp.evaluate.results_md import markdown_timings
 
     stages = {"generation": 1.0, "inference": 2.0}
     timings = {"stages_wall_summed_over_sequences": stages,

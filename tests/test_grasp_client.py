@@ -215,8 +215,8 @@ def test_grasp_from_json_keeps_the_documented_joint_order():
 def test_a_robot_sends_a_label_image_and_the_grasps_keep_clear_of_the_other_objects(server):
     """Issue 61: a label image's other objects become the session's obstacles; the client says
     how many the grasps kept clear of, and refuses an obstacle mask of the wrong size."""
-    from completion.render import Renderer
-    from grasp.evaluate.clutter import clutter_scene
+    from completion.depth_camera import Renderer
+    from grasp.evaluate.clutter_scenes import clutter_scene
 
     renderer = Renderer()
     try:

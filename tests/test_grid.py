@@ -80,7 +80,7 @@ def test_random_urdf_mesh_gives_nonempty_solid():
 
 
 def test_depth_to_points_recovers_plane_distance():
-    from completion.render import Renderer, look_at
+    from completion.depth_camera import Renderer, look_at
 
     with Renderer() as r:
         r.add_mesh(

@@ -130,7 +130,7 @@ def test_among_neighbours_the_planner_preshapes_the_hand_where_the_open_one_woul
     approaches with the fingers at 45°, holds, and leaves the neighbours standing (the lift
     test executes the pre-shape)."""
     from grasp.autograsp import pregrasp_pose
-    from grasp.evaluate.clutter import scene_objects
+    from grasp.evaluate.clutter_scenes import scene_objects
     from grasp.planner import CLUTTER_PRESHAPE_DEG
 
     _, target, _, neighbours, _, _ = scene_objects(4, 0)

@@ -2,7 +2,7 @@ import numpy as np
 import pytest
 from scipy import ndimage
 
-from completion.render import Renderer
+from completion.depth_camera import Renderer
 from completion.scenes import CONDITIONS, make_sequence
 
 

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from completion.render import Renderer, SensorModel, look_at
+from completion.depth_camera import Renderer, SensorModel, look_at
 
 QUIET = {"edge_hole": 0.0, "edge_flying": 0.0, "subpixel": 0, "dropout": 0.0}
 

@@ -18,8 +18,8 @@ TABLE = [0.0, 0.0, 1.0, 0.0]
 @pytest.fixture(scope="module")
 def clutter():
     """The clutter table's first scene: a target, its neighbours and a pan of 4 views."""
-    from completion.render import Renderer
-    from grasp.evaluate.clutter import clutter_scene
+    from completion.depth_camera import Renderer
+    from grasp.evaluate.clutter_scenes import clutter_scene
 
     renderer = Renderer()
     try:

@@ -76,7 +76,7 @@ _INTRINSICS = ("fx", "fy", "cx", "cy", "width", "height")
 
 def _posed_camera(rng):
     """A camera 0.5 m from the origin looking at it from a random direction above the table."""
-    from completion.render import look_at
+    from completion.depth_camera import look_at
 
     elevation, azimuth = rng.uniform(0.3, 1.5), rng.uniform(0, 2 * np.pi)
     eye = 0.5 * np.array([np.cos(azimuth) * np.cos(elevation),

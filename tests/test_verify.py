@@ -135,8 +135,8 @@ def test_the_benchmark_verification_sees_only_the_completion(monkeypatch):
     """In the completion rows the verification gets the completion (camera frame) and a density:
     never the true mesh, so never the true mass. A test fails if the truth reaches it."""
     import completion
-    from completion.render import Renderer
-    from grasp.evaluate import benchmark as b
+    from completion.depth_camera import Renderer
+    from grasp.evaluate import benchmark_scenes as b
     from grasp.evaluate.rows import ModelRow
 
     seen: list[tuple[str, trimesh.Trimesh]] = []

@@ -53,15 +53,16 @@ sequence's identity, and every worker runs torch on one thread, so the numbers d
 
 The package: :mod:`~grasp.evaluate.config` (rows, metrics, presets, settings, the paper's
 numbers), :mod:`~grasp.evaluate.rows` (each row an object that turns views into probabilities),
-:mod:`~grasp.evaluate.records` (a sequence's result, stage timings),
+:mod:`~grasp.evaluate.sequence_result` (a sequence's result, stage timings),
 :mod:`~grasp.evaluate.runner` (one sequence), :mod:`~grasp.evaluate.pool` (the workers),
-:mod:`~grasp.evaluate.tables` (every table, one module each: main, sensor, overhead, benchmark,
-objects), :mod:`~grasp.evaluate.aggregate` (the main tables' cells and counts),
-:mod:`~grasp.evaluate.precision` (Table I's standard errors),
-:mod:`~grasp.evaluate.results` (all of results.json), :mod:`~grasp.evaluate.cells` (means and
-their Markdown), :mod:`~grasp.evaluate.report` (results.md), :mod:`~grasp.evaluate.figures` (the
-PNGs), :mod:`~grasp.evaluate.benchmark` (the benchmark's scenes and lift tests) and
-:mod:`~grasp.evaluate.cli` (the command line).
+:mod:`~grasp.evaluate.tables` (every table, one module each with its options: main, sensor,
+overhead, benchmark, clutter, objects), :mod:`~grasp.evaluate.aggregate` (the main tables' cells
+and counts), :mod:`~grasp.evaluate.precision` (Table I's standard errors),
+:mod:`~grasp.evaluate.results_json` (all of results.json), :mod:`~grasp.evaluate.cells` (means and
+their Markdown), :mod:`~grasp.evaluate.results_md` (results.md), :mod:`~grasp.evaluate.figures`
+and :mod:`~grasp.evaluate.failure_figures` (the PNGs), :mod:`~grasp.evaluate.benchmark_scenes`
+and :mod:`~grasp.evaluate.clutter_scenes` (the benchmark's and the clutter table's scenes and
+rows) and :mod:`~grasp.evaluate.cli` (the command line).
 """
 
 from grasp.evaluate.aggregate import aggregate
@@ -80,8 +81,8 @@ from grasp.evaluate.config import (
     Settings,
 )
 from grasp.evaluate.pool import run_jobs
-from grasp.evaluate.report import markdown_report
-from grasp.evaluate.results import build_results
+from grasp.evaluate.results_json import build_results
+from grasp.evaluate.results_md import markdown_report
 from grasp.evaluate.rows import registered_fusion
 from grasp.evaluate.runner import Evaluator, make_jobs
 

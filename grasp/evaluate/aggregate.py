@@ -18,7 +18,7 @@ from grasp.evaluate.config import (
     Settings,
 )
 from grasp.evaluate.precision import cell_precision
-from grasp.evaluate.records import SequenceResult
+from grasp.evaluate.sequence_result import SequenceResult
 from hands.barrett import JOINT_NAMES
 
 #: results.json key of each grasp metric inside a ``JointError.as_dict()``.

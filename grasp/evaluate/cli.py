@@ -16,8 +16,8 @@ from completion.scenes import CONDITIONS, VIEWS
 from grasp.evaluate.config import PRESETS, PRIOR, ROWS, Preset, Settings, checkpoints_needed
 from grasp.evaluate.figures import write_figures
 from grasp.evaluate.pool import run_jobs
-from grasp.evaluate.report import markdown_report
-from grasp.evaluate.results import build_results
+from grasp.evaluate.results_json import build_results
+from grasp.evaluate.results_md import markdown_report
 from grasp.evaluate.runner import make_jobs
 from grasp.evaluate.tables import OPTIONS, Option
 

@@ -90,9 +90,9 @@ FOLDER_TABLE = "objects"
 MAIN_TABLE = "main"
 #: The paper's five conditions seen through the sensor model (test split, Jaccard only).
 SENSOR_TABLE = "sensor"
-#: The grasp-success benchmark (:mod:`grasp.evaluate.benchmark`): one job per object.
+#: The grasp-success benchmark (:mod:`grasp.evaluate.benchmark_scenes`): one job per object.
 BENCHMARK_TABLE = "benchmark"
-#: A target among neighbours on a table (:mod:`grasp.evaluate.clutter`): one job per scene.
+#: A target among neighbours on a table (:mod:`grasp.evaluate.clutter_scenes`): one job per scene.
 CLUTTER_TABLE = "clutter"
 #: The paper's Tables I–III, (train, test) per condition in PAPER_ORDER; None = N/A there.
 _PAPER_ROWS = {

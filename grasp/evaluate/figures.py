@@ -17,8 +17,8 @@ from grasp.evaluate.config import (
     ROW_LABELS,
     figure_rows,
 )
-from grasp.evaluate.records import SequenceResult
 from grasp.evaluate.runner import truth_mesh_in_latest_camera
+from grasp.evaluate.sequence_result import SequenceResult
 from grasp.evaluate.tables import TABLES
 
 

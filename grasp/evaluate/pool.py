@@ -4,8 +4,8 @@ actors; each worker keeps one :class:`~grasp.evaluate.runner.Evaluator` between 
 from __future__ import annotations
 
 from grasp.evaluate.config import Job, Settings
-from grasp.evaluate.records import SequenceResult
 from grasp.evaluate.runner import Evaluator
+from grasp.evaluate.sequence_result import SequenceResult
 
 _WORKER: Evaluator | None = None
 

@@ -8,7 +8,7 @@ import numpy as np
 
 from grasp.evaluate.cells import mean_and_se, pm
 from grasp.evaluate.config import CONDITION_LABELS, MEMORY_OFF, ROW_LABELS, TABLE_ORDER
-from grasp.evaluate.records import SequenceResult
+from grasp.evaluate.sequence_result import SequenceResult
 
 
 def cell_precision(seqs: list[SequenceResult], row: str, rows: tuple[str, ...]) -> dict:

@@ -23,8 +23,8 @@ from grasp.evaluate.config import (
     Settings,
     figure_rows,
 )
-from grasp.evaluate.records import SequenceResult, StageClock, Timings, key_seed
 from grasp.evaluate.rows import load_models, make_rows
+from grasp.evaluate.sequence_result import SequenceResult, StageClock, Timings, key_seed
 from grasp.evaluate.tables import BY_NAME, TABLES, check_options
 from grasp_client.wire import SupportPlane
 
@@ -54,7 +54,7 @@ class Evaluator:
     """Owns what a worker keeps between sequences: a renderer, the loaded models, the rows."""
 
     def __init__(self, settings: Settings) -> None:
-        from completion.render import Renderer
+        from completion.depth_camera import Renderer
 
         self.settings = settings
         self.renderer = Renderer()

@@ -1,7 +1,7 @@
 """What each part of the sensor model costs one model: ``python -m grasp.evaluate.sensor_parts``.
 
 The same test sequences (seed 0) rendered noiseless, through the whole
-:class:`completion.render.SensorModel`, and with one part of it switched off at a time (flying
+:class:`completion.depth_camera.SensorModel`, and with one part of it switched off at a time (flying
 pixels; every edge effect, holes and flying pixels; everything but the Gaussian axial noise).
 Per part and condition: the model's mean Jaccard, its difference from the noiseless sequences
 and the mean voxel side of the grids, as a markdown table. ``--no-cleaning`` feeds the raw depth
@@ -17,7 +17,7 @@ from collections.abc import Sequence
 import numpy as np
 
 from completion.cli import HelpWithDefaults
-from completion.render import SensorModel
+from completion.depth_camera import SensorModel
 
 #: name -> the sensor (None: noiseless).
 PARTS: dict[str, SensorModel | None] = {

@@ -9,7 +9,7 @@ from typing import Any
 
 from grasp.evaluate.aggregate import sequence_records
 from grasp.evaluate.config import Job, Settings
-from grasp.evaluate.records import SequenceResult
+from grasp.evaluate.sequence_result import SequenceResult
 
 
 @dataclass(frozen=True)

@@ -1,5 +1,5 @@
 """The grasp-benchmark table: objects resting on a table, grasped from one or four views and
-lift-tested (the scenes and the lift tests: :mod:`grasp.evaluate.benchmark`)."""
+lift-tested (the scenes and the lift tests: :mod:`grasp.evaluate.benchmark_scenes`)."""
 
 from __future__ import annotations
 
@@ -9,11 +9,11 @@ from typing import Any
 import numpy as np
 
 from completion.bullet import quiet_fds
-from grasp.evaluate import benchmark as b
+from grasp.evaluate import benchmark_scenes as b
 from grasp.evaluate.cells import fmt
 from grasp.evaluate.config import BENCHMARK_TABLE, FUSION, GRASP_SUCCESS, Job, Settings
 from grasp.evaluate.failure_figures import failures_figure
-from grasp.evaluate.records import SequenceResult, StageClock, Timings, key_seed
+from grasp.evaluate.sequence_result import SequenceResult, StageClock, Timings, key_seed
 from grasp.evaluate.tables.base import Option, Table, rows_record
 from grasp.verify import DEFAULT_VERIFY
 
@@ -86,7 +86,7 @@ class BenchmarkTable(Table):
         return rows_record(result)
 
     def summarise(self, results: list[SequenceResult], settings: Settings) -> dict:
-        """``grasp_benchmark`` (:func:`grasp.evaluate.benchmark.summarise`; None without a
+        """``grasp_benchmark`` (:func:`grasp.evaluate.benchmark_scenes.summarise`; None without a
         benchmark) and ``grasp_benchmark_objects``, one record per object."""
         mine = [r for r in results if r.job.table == BENCHMARK_TABLE]
         rows = [row for row in b.BENCHMARK_ROWS if any(row in r.record["rows"] for r in mine)]

@@ -1,6 +1,6 @@
 """The clutter table: a target among neighbours on a table, grasped with the neighbours seen as
 obstacles and without, lift-tested with the neighbours standing by (the scenes and the rows:
-:mod:`grasp.evaluate.clutter`)."""
+:mod:`grasp.evaluate.clutter_scenes`)."""
 
 from __future__ import annotations
 
@@ -8,12 +8,12 @@ from pathlib import Path
 from typing import Any
 
 from completion.bullet import quiet_fds
-from grasp.evaluate import clutter as c
-from grasp.evaluate.benchmark import _reason_kind, wilson
+from grasp.evaluate import clutter_scenes as c
+from grasp.evaluate.benchmark_scenes import _reason_kind, wilson
 from grasp.evaluate.cells import fmt
 from grasp.evaluate.config import CLUTTER_TABLE, GRASP_SUCCESS, Job, Settings
 from grasp.evaluate.failure_figures import failures_figure
-from grasp.evaluate.records import SequenceResult, StageClock, Timings, key_seed
+from grasp.evaluate.sequence_result import SequenceResult, StageClock, Timings, key_seed
 from grasp.evaluate.tables.base import Option, Table, rows_record
 from grasp.evaluate.tables.benchmark import CANDIDATES
 

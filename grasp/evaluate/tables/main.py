@@ -29,7 +29,7 @@ from grasp.evaluate.config import (
     Settings,
 )
 from grasp.evaluate.precision import markdown_precision
-from grasp.evaluate.records import SequenceResult
+from grasp.evaluate.sequence_result import SequenceResult
 from grasp.evaluate.tables.base import Table
 from hands.barrett import JOINT_NAMES
 

@@ -16,7 +16,7 @@ from grasp.evaluate.config import (
     Job,
     Settings,
 )
-from grasp.evaluate.records import SequenceResult
+from grasp.evaluate.sequence_result import SequenceResult
 from grasp.evaluate.tables.base import Option, Table
 
 #: ``--named N``: the named objects evaluated.

@@ -8,7 +8,7 @@ from typing import Any
 
 from grasp.evaluate.cells import fmt, mean_or_none
 from grasp.evaluate.config import ROW_LABELS, Job, Settings
-from grasp.evaluate.records import SequenceResult
+from grasp.evaluate.sequence_result import SequenceResult
 from grasp.evaluate.tables.base import Option, Table
 
 OVERHEAD_TABLE = "overhead"

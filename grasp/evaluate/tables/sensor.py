@@ -1,5 +1,5 @@
 """The sensor table: each condition's first test sequences seen with and without the sensor model
-(completion.render.SensorModel), paired sequence by sequence (Jaccard only)."""
+(completion.depth_camera.SensorModel), paired sequence by sequence (Jaccard only)."""
 
 from __future__ import annotations
 
@@ -16,7 +16,7 @@ from grasp.evaluate.config import (
     Job,
     Settings,
 )
-from grasp.evaluate.records import SequenceResult
+from grasp.evaluate.sequence_result import SequenceResult
 from grasp.evaluate.tables.base import Option, Table
 
 #: ``--sensor N`` (``--no-sensor``: 0): test sequences per condition.
@@ -82,7 +82,7 @@ class SensorTable(Table):
         lines = [
             "## Jaccard with the sensor model on and off (test split, the same sequences)",
             "",
-            f"Each cell: Jaccard ± SE over {n} sequences seen through completion.render."
+            f"Each cell: Jaccard ± SE over {n} sequences seen through completion.depth_camera."
             "SensorModel, then, in brackets, the mean paired difference from the same sequences "
             "rendered without it (on by default for tabletop, off for the paper's five); the input "
             "is cleaned as completion/depth.py says in both.",

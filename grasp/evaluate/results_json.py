@@ -7,7 +7,7 @@ from __future__ import annotations
 from dataclasses import asdict
 
 from grasp.evaluate.config import EVAL_SPLITS, PAPER_TABLES, Settings
-from grasp.evaluate.records import STAGES, SequenceResult, Timings
+from grasp.evaluate.sequence_result import STAGES, SequenceResult, Timings
 from grasp.evaluate.tables import BY_NAME, OPTIONS, TABLES
 
 

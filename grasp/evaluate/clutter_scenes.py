@@ -1,6 +1,6 @@
 """The clutter table: one object among others on a table, the neighbours seen as obstacles.
 
-Each scene (:func:`clutter_scene`) puts a held-out target (:func:`~grasp.evaluate.benchmark.
+Each scene (:func:`clutter_scene`) puts a held-out target (:func:`~grasp.evaluate.benchmark_scenes.
 benchmark_objects`' order) on the table in a stable pose and 2–5 neighbours around it (other
 test-split objects at most :data:`MAX_NEIGHBOUR_M` across, in stable poses in which they stand
 still in the simulation when nudged, :func:`stands_still`), each at a gap of
@@ -33,7 +33,7 @@ import trimesh
 from completion import grid as G
 from completion.objects import load_object
 from completion.scenes import TABLE_PLANE
-from grasp.evaluate.benchmark import VIEWS, benchmark_objects, grasp_kind, render_pan
+from grasp.evaluate.benchmark_scenes import VIEWS, benchmark_objects, grasp_kind, render_pan
 from grasp.obstacles import Obstacles, seen_others
 
 CLUTTER_ROWS: tuple[str, ...] = ("true_meshes", "mvp_4views_obstacles", "mvp_4views_ignoring")
@@ -216,7 +216,7 @@ def run_scene(scene: ClutterScene, models: dict, rows, *, candidates: int, seed:
     "preshape_deg", "planned_joints_deg", "palm_pose" (world, where the fingers closed)} for one
     scene. The completion rows plan on MVP's completion in its last
     camera's frame, with the obstacles moved there; the referee runs on the true objects."""
-    from grasp.evaluate.benchmark import completion_mesh
+    from grasp.evaluate.benchmark_scenes import completion_mesh
     from grasp.physics import lift_test
     from grasp.planner import plan
 
@@ -258,7 +258,7 @@ def run_scene(scene: ClutterScene, models: dict, rows, *, candidates: int, seed:
 
 
 def _as_benchmark_scene(scene: ClutterScene):
-    from grasp.evaluate.benchmark import Scene
+    from grasp.evaluate.benchmark_scenes import Scene
 
     return Scene(scene.target_id, scene.target, scene.depth, scene.mask, scene.cameras,
                  scene.intrinsics)

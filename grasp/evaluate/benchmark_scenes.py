@@ -114,7 +114,7 @@ def render_pan(renderer, meshes, aim, distance: float, elevation: float, azimuth
     (radians), one per ``azimuth``: (views, H, W) depths through the sensor model (``noise``
     its generator), index images (mesh i is i, the table ``len(meshes)``, nothing −1) and
     camera→world poses."""
-    from completion.render import SensorModel, look_at
+    from completion.depth_camera import SensorModel, look_at
     from completion.scenes import table_mesh
 
     renderer.clear()

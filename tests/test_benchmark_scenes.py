@@ -24,7 +24,7 @@ def test_below_plane_counts_voxel_centres_under_the_support_plane():
 
 
 def test_benchmark_objects_and_success_intervals():
-    from grasp.evaluate.benchmark import benchmark_objects, summarise, wilson
+    from grasp.evaluate.benchmark_scenes import benchmark_objects, summarise, wilson
 
     objects = benchmark_objects(30, 0)
     assert objects == benchmark_objects(30, 0) != benchmark_objects(30, 1)
@@ -51,8 +51,8 @@ def test_benchmark_records_of_six_objects_are_pinned():
     import json
     from pathlib import Path
 
-    from completion.render import Renderer
-    from grasp.evaluate import benchmark as b
+    from completion.depth_camera import Renderer
+    from grasp.evaluate import benchmark_scenes as b
 
     golden = json.loads((Path(__file__).parent / "golden" / "benchmark_objects.json").read_text())
     with Renderer() as renderer:

@@ -3,7 +3,7 @@ them."""
 
 from __future__ import annotations
 
-from grasp.evaluate.records import markdown_timings
+from grasp.evaluate.sequence_result import markdown_timings
 from grasp.evaluate.tables import TABLES
 from grasp.evaluate.tables.main import MAIN, SMOKE_COUNT
 
