@@ -3,7 +3,7 @@ pairs every condition with and without the sensor, and grasps beyond --count are
 
 from completion.scenes import CONDITIONS, SINGLE_OBJECT_CONDITIONS
 from grasp import evaluate as ev
-from grasp.evaluate.config import SENSOR_TABLE
+from grasp.evaluate.tables.sensor import SENSOR_TABLE
 
 
 def test_sensor_jobs_pair_every_condition_and_extra_grasps_are_grasp_only():

@@ -83,17 +83,8 @@ GRASP_SUCCESS_TITLE = (
     "Grasp success: planned on the prediction, lifted and shaken on the true object in pybullet "
     "(final view; higher is better)"
 )
-#: The condition of the named-object and ``--objects`` tables.
-OBJECT_TABLE_CONDITION = "camera_pan"
-NAMED_OBJECTS_TABLE = "named"
-FOLDER_TABLE = "objects"
+#: The main table's name (each other table's is in its module, grasp.evaluate.tables).
 MAIN_TABLE = "main"
-#: The paper's five conditions seen through the sensor model (test split, Jaccard only).
-SENSOR_TABLE = "sensor"
-#: The grasp-success benchmark (:mod:`grasp.evaluate.benchmark_scenes`): one job per object.
-BENCHMARK_TABLE = "benchmark"
-#: A target among neighbours on a table (:mod:`grasp.evaluate.clutter_scenes`): one job per scene.
-CLUTTER_TABLE = "clutter"
 #: The paper's Tables I–III, (train, test) per condition in PAPER_ORDER; None = N/A there.
 _PAPER_ROWS = {
     "jaccard": {
@@ -245,7 +236,7 @@ class Settings:
 class Job:
     """One sequence to evaluate."""
 
-    table: str  # MAIN_TABLE, NAMED_OBJECTS_TABLE or FOLDER_TABLE
+    table: str  # the name of the table that asked for it (grasp.evaluate.tables)
     condition: str
     split: str
     index: int

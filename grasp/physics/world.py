@@ -91,8 +91,6 @@ class DynamicWorld:
         params: BarrettParams = BH8_282,
         cache_dir: str | Path | None = None,
     ) -> None:
-        from hands.barrett.urdf import urdf_string
-
         check_mesh(mesh)
         if not (math.isfinite(friction) and friction >= 0.0):
             raise ValueError(f"friction must be a finite coefficient >= 0, got {friction}")
@@ -116,48 +114,61 @@ class DynamicWorld:
             # other objects on the table, dynamic as the object (same density)
             self.neighbour_ids = [self._add_body(check_mesh(m), density, cache_dir)[0]
                                   for m in neighbours]
-            self.table_id: int | None = None
-            if table_top is not None:
-                half = [0.5, 0.5, 0.025]
-                box = c.createCollisionShape(pybullet.GEOM_BOX, halfExtents=half)
-                centre = np.asarray(mesh.bounds).mean(axis=0)
-                centre[2] = float(table_top) - half[2]
-                self.table_id = c.createMultiBody(0.0, box, basePosition=centre.tolist())
-                c.changeDynamics(self.table_id, -1, lateralFriction=settings.table_friction)
-            with tempfile.TemporaryDirectory() as tmp:
-                urdf = Path(tmp) / "barrett.urdf"
-                urdf.write_text(urdf_string(params))
-                # implicit cylinders: pybullet would otherwise pad the palm's hull by its margin
-                self.hand_id = c.loadURDF(
-                    str(urdf),
-                    useFixedBase=False,
-                    flags=pybullet.URDF_USE_INERTIA_FROM_FILE | pybullet.URDF_USE_IMPLICIT_CYLINDER,
-                )
-            self.joints: dict[str, JointInfo] = {}
-            for index in range(c.getNumJoints(self.hand_id)):
-                info = c.getJointInfo(self.hand_id, index)
-                record = JointInfo(
-                    index, info[1].decode(), info[2], info[8], info[9], info[12].decode()
-                )
-                self.joints[record.name] = record
-            for link in range(-1, c.getNumJoints(self.hand_id)):
-                c.changeDynamics(
-                    self.hand_id,
-                    link,
-                    lateralFriction=float(friction),
-                    frictionAnchor=1,
-                    spinningFriction=0.0,
-                    rollingFriction=0.0,
-                    jointDamping=0.0,
-                    linearDamping=0.0,
-                    angularDamping=0.0,
-                )
+            self.table_id = None if table_top is None else self._add_table(mesh, table_top)
+            self.hand_id, self.joints = self._load_hand(params, friction)
             # the base of a pybullet body is its inertial frame, not the URDF palm frame
             inertial = c.getDynamicsInfo(self.hand_id, -1)
             self._palm_in_base = c.invertTransform(inertial[3], inertial[4])
         except Exception:
             c.disconnect()
             raise
+
+    def _add_table(self, mesh: trimesh.Trimesh, table_top: float) -> int:
+        """A static 1 m square table whose top is the plane z = ``table_top``, centred under
+        ``mesh``; its body id."""
+        c, half = self.client, [0.5, 0.5, 0.025]
+        box = c.createCollisionShape(pybullet.GEOM_BOX, halfExtents=half)
+        centre = np.asarray(mesh.bounds).mean(axis=0)
+        centre[2] = float(table_top) - half[2]
+        table = c.createMultiBody(0.0, box, basePosition=centre.tolist())
+        c.changeDynamics(table, -1, lateralFriction=self.settings.table_friction)
+        return table
+
+    def _load_hand(self, params: BarrettParams,
+                   friction: float) -> tuple[int, dict[str, JointInfo]]:
+        """The hand from its generated URDF, every link with ``friction`` and no damping; its
+        body id and its joints by name."""
+        from hands.barrett.urdf import urdf_string
+
+        c = self.client
+        with tempfile.TemporaryDirectory() as tmp:
+            urdf = Path(tmp) / "barrett.urdf"
+            urdf.write_text(urdf_string(params))
+            # implicit cylinders: pybullet would otherwise pad the palm's hull by its margin
+            hand = c.loadURDF(
+                str(urdf),
+                useFixedBase=False,
+                flags=pybullet.URDF_USE_INERTIA_FROM_FILE | pybullet.URDF_USE_IMPLICIT_CYLINDER,
+            )
+        joints: dict[str, JointInfo] = {}
+        for index in range(c.getNumJoints(hand)):
+            info = c.getJointInfo(hand, index)
+            joints[info[1].decode()] = JointInfo(
+                index, info[1].decode(), info[2], info[8], info[9], info[12].decode()
+            )
+        for link in range(-1, c.getNumJoints(hand)):
+            c.changeDynamics(
+                hand,
+                link,
+                lateralFriction=float(friction),
+                frictionAnchor=1,
+                spinningFriction=0.0,
+                rollingFriction=0.0,
+                jointDamping=0.0,
+                linearDamping=0.0,
+                angularDamping=0.0,
+            )
+        return hand, joints
 
     def _add_body(self, mesh: trimesh.Trimesh, density: float,
                   cache_dir: str | Path | None) -> tuple[int, float]:

@@ -11,7 +11,7 @@ import numpy as np
 from completion.bullet import quiet_fds
 from grasp.evaluate import benchmark_scenes as b
 from grasp.evaluate.cells import fmt
-from grasp.evaluate.config import BENCHMARK_TABLE, FUSION, GRASP_SUCCESS, Job, Settings
+from grasp.evaluate.config import FUSION, GRASP_SUCCESS, Job, Settings
 from grasp.evaluate.failure_figures import failures_figure
 from grasp.evaluate.sequence_result import SequenceResult, StageClock, Timings, key_seed
 from grasp.evaluate.tables.base import Option, Table, rows_record
@@ -29,6 +29,8 @@ LABELS = {
 }
 
 
+#: The grasp-success benchmark: one job per object.
+BENCHMARK_TABLE = "benchmark"
 #: ``--benchmark N``: the objects; ``--verified N``: how many of them get the verified rows;
 #: ``--benchmark-verify N``: the grasps those try; ``--benchmark-candidates N``: the planner's
 #: candidates (the clutter table's too).

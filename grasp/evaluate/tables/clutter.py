@@ -11,7 +11,7 @@ from completion.bullet import quiet_fds
 from grasp.evaluate import clutter_scenes as c
 from grasp.evaluate.benchmark_scenes import _reason_kind, wilson
 from grasp.evaluate.cells import fmt
-from grasp.evaluate.config import CLUTTER_TABLE, GRASP_SUCCESS, Job, Settings
+from grasp.evaluate.config import GRASP_SUCCESS, Job, Settings
 from grasp.evaluate.failure_figures import failures_figure
 from grasp.evaluate.sequence_result import SequenceResult, StageClock, Timings, key_seed
 from grasp.evaluate.tables.base import Option, Table, rows_record
@@ -24,6 +24,8 @@ LABELS = {
 }
 
 
+#: A target among neighbours on a table: one job per scene.
+CLUTTER_TABLE = "clutter"
 #: ``--clutter N``: the scenes.
 SIZE = Option(CLUTTER_TABLE, "scenes of the clutter table (a target among 2-5 neighbours on a "
               "table, planned with the seen neighbours as obstacles and without; lift-tested with "

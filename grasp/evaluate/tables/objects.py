@@ -7,11 +7,8 @@ from completion.objects import object_ids
 from grasp.evaluate.aggregate import aggregate
 from grasp.evaluate.cells import CEILING_LABEL, fmt
 from grasp.evaluate.config import (
-    FOLDER_TABLE,
     FSCORE_METRICS,
     METRICS,
-    NAMED_OBJECTS_TABLE,
-    OBJECT_TABLE_CONDITION,
     ROW_LABELS,
     Job,
     Settings,
@@ -19,6 +16,9 @@ from grasp.evaluate.config import (
 from grasp.evaluate.sequence_result import SequenceResult
 from grasp.evaluate.tables.base import Option, Table
 
+#: The condition of the named-object and ``--objects`` tables.
+OBJECT_TABLE_CONDITION = "camera_pan"
+NAMED_OBJECTS_TABLE, FOLDER_TABLE = "named", "objects"
 #: ``--named N``: the named objects evaluated.
 NAMED_SIZE = Option(NAMED_OBJECTS_TABLE, "held-out named pybullet_data objects to evaluate",
                     quick=3, default=5, full=10)

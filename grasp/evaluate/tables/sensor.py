@@ -11,7 +11,6 @@ from grasp.evaluate.config import (
     CONDITION_LABELS,
     MAIN_TABLE,
     ROW_LABELS,
-    SENSOR_TABLE,
     TABLE_ORDER,
     Job,
     Settings,
@@ -19,6 +18,7 @@ from grasp.evaluate.config import (
 from grasp.evaluate.sequence_result import SequenceResult
 from grasp.evaluate.tables.base import Option, Table
 
+SENSOR_TABLE = "sensor"
 #: ``--sensor N`` (``--no-sensor``: 0): test sequences per condition.
 SIZE = Option(SENSOR_TABLE, "test sequences per condition seen with and without the sensor model, "
               "paired (Jaccard)", quick=1, default=5, full=50, negatable=True)
