@@ -53,6 +53,12 @@ class _Finger:
         return self.mode in ("stopped", "limit")
 
 
+#: Every body's contact and damping settings beyond its friction: anchored friction, no spinning
+#: or rolling friction, no damping.
+_UNDAMPED = {"frictionAnchor": 1, "spinningFriction": 0.0, "rollingFriction": 0.0,
+             "linearDamping": 0.0, "angularDamping": 0.0}
+
+
 class DynamicWorld:
     """A pybullet world (its own DIRECT client) with a dynamic object and a free-base BarrettHand.
 
@@ -157,17 +163,8 @@ class DynamicWorld:
                 index, info[1].decode(), info[2], info[8], info[9], info[12].decode()
             )
         for link in range(-1, c.getNumJoints(hand)):
-            c.changeDynamics(
-                hand,
-                link,
-                lateralFriction=float(friction),
-                frictionAnchor=1,
-                spinningFriction=0.0,
-                rollingFriction=0.0,
-                jointDamping=0.0,
-                linearDamping=0.0,
-                angularDamping=0.0,
-            )
+            c.changeDynamics(hand, link, lateralFriction=float(friction), jointDamping=0.0,
+                             **_UNDAMPED)
         return hand, joints
 
     def _add_body(self, mesh: trimesh.Trimesh, density: float,
@@ -205,11 +202,7 @@ class DynamicWorld:
             -1,
             localInertiaDiagonal=np.maximum(principal, 1e-12).tolist(),
             lateralFriction=1.0,
-            frictionAnchor=1,
-            spinningFriction=0.0,
-            rollingFriction=0.0,
-            linearDamping=0.0,
-            angularDamping=0.0,
+            **_UNDAMPED,
         )
         return body_id, mass
 
