@@ -64,6 +64,8 @@ def test_a_table_option_out_of_range_or_unknown_is_refused():
         ev.make_jobs(ev.Settings(rows=(ev.FUSION,), options=(("benchmark_candidates", 0),)))
     with pytest.raises(ValueError, match="no table has an option 'benchmarks'"):
         ev.make_jobs(ev.Settings(rows=(ev.FUSION,), options=(("benchmarks", 3),)))
+    with pytest.raises(ValueError, match="an option named twice"):
+        ev.make_jobs(ev.Settings(rows=(ev.FUSION,), options=(("sensor", 3), ("sensor", 0))))
     parser = ev.build_parser()
     with pytest.raises(SystemExit):
         parser.parse_args(["--benchmark-verify", "0"])

@@ -34,7 +34,7 @@ def _add(parser: argparse.ArgumentParser, option: Option) -> None:
     parser.add_argument(option.flag, type=integer_at_least(option.least), default=None,
                         metavar="N", help=option.help_text(), **bare)
     if option.negatable:
-        parser.add_argument(f"--no-{option.name}", action="store_const", const=0,
+        parser.add_argument(f"--no-{option.flag[2:]}", action="store_const", const=0,
                             dest=option.name, help=f"the same as {option.flag} 0")
 
 

@@ -20,6 +20,7 @@ def build_results(results: list[SequenceResult], settings: Settings, wall: dict)
     for table in TABLES:  # each table's own entries, the main table's first
         out.update(table.summarise(results, settings))
     stages = [*STAGES, *(stage for table in TABLES for stage in table.stages)]
+    stages += [k for k in timings.wall if k not in stages]  # one a table charged undeclared
     out |= {
         "per_object": [record for r in results
                        for record in BY_NAME[r.job.table].records(r, settings)],

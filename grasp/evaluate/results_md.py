@@ -3,7 +3,6 @@ them."""
 
 from __future__ import annotations
 
-from grasp.evaluate.sequence_result import markdown_timings
 from grasp.evaluate.tables import TABLES
 from grasp.evaluate.tables.main import MAIN, SMOKE_COUNT
 
@@ -110,3 +109,25 @@ def _section(results: dict, section: str) -> list[str]:
     """The lines of every table of :data:`~grasp.evaluate.tables.TABLES` placed in ``section``."""
     return [line for table in TABLES if table.section == section and table is not MAIN
             for line in table.markdown(results)]
+
+
+def markdown_timings(results: dict) -> str:
+    """Per-stage seconds (wall and CPU, summed over sequences) and the run's wall times."""
+    t = results["timings_s"]
+    wall, cpu = t["stages_wall_summed_over_sequences"], t["stages_cpu_summed_over_sequences"]
+    workers = results["config"]["workers"]
+    one, many = ("Ray actor", "Ray actors") if results["config"].get("ray") else (
+        "worker process", "worker processes")
+    lines = [
+        f"## Timings (seconds; {workers} {many if workers > 1 else one})",
+        "",
+        "| stage | wall, summed over sequences | CPU, summed over sequences |",
+        "|---|---|---|",
+        *[f"| {k} | {wall[k]:.1f} | {cpu[k]:.1f} |" for k in wall],
+        f"| all stages | {sum(wall.values()):.1f} | {sum(cpu.values()):.1f} |",
+        "",
+        "| run | wall |",
+        "|---|---|",
+        *[f"| {k} | {v:.1f} |" for k, v in t["wall"].items()],
+    ]
+    return "\n".join(lines)

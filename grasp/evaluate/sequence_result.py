@@ -69,25 +69,3 @@ class SequenceResult:
 def key_seed(*parts: object) -> int:
     """A stable 32-bit seed from a job's identity (same seed → same samples and grasps)."""
     return zlib.crc32("/".join(map(str, parts)).encode())
-
-
-def markdown_timings(results: dict) -> str:
-    """Per-stage seconds (wall and CPU, summed over sequences) and the run's wall times."""
-    t = results["timings_s"]
-    wall, cpu = t["stages_wall_summed_over_sequences"], t["stages_cpu_summed_over_sequences"]
-    workers = results["config"]["workers"]
-    one, many = ("Ray actor", "Ray actors") if results["config"].get("ray") else (
-        "worker process", "worker processes")
-    lines = [
-        f"## Timings (seconds; {workers} {many if workers > 1 else one})",
-        "",
-        "| stage | wall, summed over sequences | CPU, summed over sequences |",
-        "|---|---|---|",
-        *[f"| {k} | {wall[k]:.1f} | {cpu[k]:.1f} |" for k in wall],
-        f"| all stages | {sum(wall.values()):.1f} | {sum(cpu.values()):.1f} |",
-        "",
-        "| run | wall |",
-        "|---|---|",
-        *[f"| {k} | {v:.1f} |" for k, v in t["wall"].items()],
-    ]
-    return "\n".join(lines)

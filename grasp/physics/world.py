@@ -53,8 +53,8 @@ class _Finger:
         return self.mode in ("stopped", "limit")
 
 
-#: Every body's contact and damping settings beyond its friction: anchored friction, no spinning
-#: or rolling friction, no damping.
+#: The object's, the neighbours' and the hand links' contact and damping settings beyond their
+#: friction: anchored friction, no spinning or rolling friction, no damping.
 _UNDAMPED = {"frictionAnchor": 1, "spinningFriction": 0.0, "rollingFriction": 0.0,
              "linearDamping": 0.0, "angularDamping": 0.0}
 

@@ -22,12 +22,16 @@ TABLES: tuple[Table, ...] = (
 BY_NAME: dict[str, Table] = {table.name: table for table in TABLES}
 #: Every table's options, by name.
 OPTIONS: dict[str, Option] = {o.name: o for table in TABLES for o in table.options}
-assert len(OPTIONS) == sum(len(t.options) for t in TABLES), "two tables declare one option"
-
+if len(OPTIONS) != sum(len(t.options) for t in TABLES):
+    raise RuntimeError("two tables declare an option of one name")
 
 
 def check_options(settings: Settings) -> None:
-    """Raise ValueError for an option of ``settings`` that no table has, or below its least."""
+    """Raise ValueError for an option of ``settings`` that no table has, one named twice, or one
+    below its least."""
+    names = [name for name, _ in settings.options]
+    if len(set(names)) != len(names):
+        raise ValueError(f"an option named twice: {names}")
     for name, value in settings.options:
         if name not in OPTIONS:
             raise ValueError(f"no table has an option {name!r}; the options: {list(OPTIONS)}")

@@ -19,8 +19,9 @@ class Option:
     three when ``quick`` and ``full`` are None), the least value it takes, the value of the
     option given alone (``bare``; None: it needs a value), the option whose value it takes when
     that one is given and it is not (``follows``), and whether ``--no-<name>`` sets it to 0.
-    The command line (:mod:`grasp.evaluate.cli`) adds it and fills the run's
-    :class:`~grasp.evaluate.config.Settings` (``options``, by name); :meth:`of` reads it back."""
+    The command line (:mod:`grasp.evaluate.cli`) adds it, applies ``bare`` and ``follows``, and
+    fills the run's :class:`~grasp.evaluate.config.Settings` (``options``, by name); :meth:`of`
+    reads it back (settings built in code name each value they want)."""
 
     name: str
     help: str
@@ -74,7 +75,7 @@ class Table:
     section: str = "objects"
     #: its own command-line options (none: sized by the main table's, :mod:`grasp.evaluate.cli`)
     options: tuple[Option, ...] = ()
-    #: the stages its :meth:`run` charges beyond the main table's (records.STAGES), in order
+    #: the stages its :meth:`run` charges beyond the main table's (sequence_result.STAGES), in order
     stages: tuple[str, ...] = ()
 
     def jobs(self, settings: Settings) -> list[Job]:
@@ -105,7 +106,8 @@ class Table:
 
 def rows_record(result: SequenceResult) -> list[dict]:
     """The one ``per_object`` record of a job whose :attr:`SequenceResult.record` holds each
-    row's outcome under ``"rows"`` (the benchmark's object, the clutter table's scene)."""
+    row's outcome under ``"rows"`` (the benchmark's object, the clutter table's scene); the
+    outcomes sit under the key ``"benchmark"`` for both, as results.json has always had them."""
     r = result
     return [{"table": r.job.table, "index": r.job.index, "object_ids": r.object_ids,
              "benchmark": r.record["rows"]}]

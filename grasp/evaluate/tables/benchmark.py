@@ -34,11 +34,11 @@ BENCHMARK_TABLE = "benchmark"
 #: ``--benchmark N``: the objects; ``--verified N``: how many of them get the verified rows;
 #: ``--benchmark-verify N``: the grasps those try; ``--benchmark-candidates N``: the planner's
 #: candidates (the clutter table's too).
-SIZE = Option(BENCHMARK_TABLE, "objects of the grasp-success benchmark (objects on a table, "
-              "grasped from 1 or 4 views, lift-tested)", quick=1, default=30, full=100, bare=100)
-VERIFIED = Option("verified", "of the benchmark's objects, how many also get the verified rows "
-                  "(the best grasps lift-tested on the planned mesh before the top one is "
-                  "chosen)", quick=1, default=10, full=100, follows=BENCHMARK_TABLE)
+SIZE = Option(BENCHMARK_TABLE, "objects of the grasp-success benchmark: objects on a table, "
+              "grasped from 1 or 4 views, lift-tested", quick=1, default=30, full=100, bare=100)
+VERIFIED = Option("verified", "of the benchmark's objects, how many also get the verified rows: "
+                  "the best grasps lift-tested on the planned mesh before the top one is "
+                  "chosen", quick=1, default=10, full=100, follows=BENCHMARK_TABLE)
 VERIFY = Option("benchmark_verify", "grasps the verified rows try at most, until one holds in "
                 "every trial", default=4, least=1)
 CANDIDATES = Option("benchmark_candidates", "planner candidates of the benchmark's and the "

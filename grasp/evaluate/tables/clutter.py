@@ -15,7 +15,7 @@ from grasp.evaluate.config import GRASP_SUCCESS, Job, Settings
 from grasp.evaluate.failure_figures import failures_figure
 from grasp.evaluate.sequence_result import SequenceResult, StageClock, Timings, key_seed
 from grasp.evaluate.tables.base import Option, Table, rows_record
-from grasp.evaluate.tables.benchmark import CANDIDATES
+from grasp.evaluate.tables.benchmark import CANDIDATES  # the benchmark's, shared: one option
 
 LABELS = {
     "true_meshes": "True meshes (target and neighbours known)",
@@ -27,9 +27,9 @@ LABELS = {
 #: A target among neighbours on a table: one job per scene.
 CLUTTER_TABLE = "clutter"
 #: ``--clutter N``: the scenes.
-SIZE = Option(CLUTTER_TABLE, "scenes of the clutter table (a target among 2-5 neighbours on a "
-              "table, planned with the seen neighbours as obstacles and without; lift-tested with "
-              "the neighbours)", quick=1, default=4, full=50)
+SIZE = Option(CLUTTER_TABLE, "scenes of the clutter table: a target among 2-5 neighbours on a "
+              "table, planned with the seen neighbours as obstacles and without, lift-tested with "
+              "the neighbours", quick=1, default=4, full=50)
 
 
 class ClutterTable(Table):

@@ -15,8 +15,8 @@ OVERHEAD_TABLE = "overhead"
 #: A view counts as from above at this elevation (degrees) or more.
 OVERHEAD_MIN_ELEVATION_DEG = 75.0
 #: ``--overhead N``: tabletop test sequences searched.
-SIZE = Option(OVERHEAD_TABLE, "tabletop test sequences searched for overhead views (elevation ≥ "
-              "75°) for the share of the completion below the table", quick=2, default=30,
+SIZE = Option(OVERHEAD_TABLE, "tabletop test sequences searched for overhead views, elevation ≥ "
+              "75°, for the share of the completion below the table", quick=2, default=30,
               full=200)
 
 

@@ -21,7 +21,7 @@ from grasp.evaluate.tables.base import Option, Table
 SENSOR_TABLE = "sensor"
 #: ``--sensor N`` (``--no-sensor``: 0): test sequences per condition.
 SIZE = Option(SENSOR_TABLE, "test sequences per condition seen with and without the sensor model, "
-              "paired (Jaccard)", quick=1, default=5, full=50, negatable=True)
+              "paired, Jaccard only", quick=1, default=5, full=50, negatable=True)
 
 
 class SensorTable(Table):
