@@ -20,12 +20,12 @@ from grasp.evaluate.results_json import build_results
 from grasp.evaluate.results_md import markdown_report
 from grasp.evaluate.runner import make_jobs
 from grasp.evaluate.tables import OPTIONS, Option
+from grasp.evaluate.tables.base import per_preset
 
 
 def _preset_help(field: str) -> str:
     """The defaults of a preset-given option, read from the presets so that --help cannot drift."""
-    d, q, f = (getattr(PRESETS[name], field) for name in ("default", "quick", "full"))
-    return f"default {d}, {q} with --quick, {f} with --full"
+    return per_preset(*(getattr(PRESETS[name], field) for name in ("default", "quick", "full")))
 
 
 def _add(parser: argparse.ArgumentParser, option: Option) -> None:

@@ -12,6 +12,11 @@ from grasp.evaluate.config import Job, Settings
 from grasp.evaluate.sequence_result import SequenceResult
 
 
+def per_preset(default: int, quick: int, full: int) -> str:
+    """How ``--help`` states an option's value per preset (the main table's and the tables')."""
+    return f"default {default}, {quick} with --quick, {full} with --full"
+
+
 @dataclass(frozen=True)
 class Option:
     """An integer option of a table, ``--<name>`` (underscores written as dashes): what it sets
@@ -52,8 +57,7 @@ class Option:
         if self.quick is None and self.full is None:
             where = f"default {self.default}"
         else:
-            where = (f"default {self.default}, {self.preset('quick')} with --quick, "
-                     f"{self.preset('full')} with --full")
+            where = per_preset(*(self.preset(p) for p in ("default", "quick", "full")))
         if self.least == 0:
             where = "0 = none; " + where
         if self.bare is not None:
