@@ -17,13 +17,20 @@ centre lies below it is empty in :meth:`CompletionStream.completion`, so meshing
 every output see nothing under the table. The views then need their camera poses (the plane is
 in the world frame, the grid in the latest camera's).
 
+When the views come with camera poses, the stream also keeps :mod:`completion.evidence`: the
+object taken as still, every posed view's logits are carried into one constant-size world grid,
+and a view's completion is its own logits averaged there with every earlier view's
+(``registered``, on by default; :attr:`CompletionStream.fused` says whether the latest completion
+came this way). Views without poses take MVP's answer alone, exactly as before the evidence
+existed; a moving object needs ``registered=False``.
+
 What else the views showed near the object (the neighbours on a table) a service may keep with
 the stream as obstacle voxels in the world frame (:meth:`CompletionStream.add_obstacles`); the
 completion does not use them.
 
 The whole stream state (model memory, current grid, latest logits, counters, the plane, the
-obstacles) serialises to bytes and back exactly, so a service can persist a session after every
-view.
+obstacles, the registered evidence) serialises to bytes and back exactly, so a service can persist
+a session after every view.
 """
 
 from __future__ import annotations
@@ -34,6 +41,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from completion import evidence as E
 from completion import grid as G
 from grasp_client.wire import SupportPlane
 
@@ -75,8 +83,13 @@ class Completion:
 class CompletionStream:
     """Streaming completion with one loaded model (not thread-safe: one stream per session)."""
 
-    def __init__(self, model: torch.nn.Module, *, threshold: float | None = None) -> None:
+    def __init__(self, model: torch.nn.Module, *, threshold: float | None = None,
+                 registered: bool = True) -> None:
         self.model = model.eval()
+        #: fuse posed views in the world frame (:mod:`completion.evidence`; a still object)
+        self.registered = registered
+        self.fused = False  # the latest completion is the registered one
+        self._evidence: E.RegisteredEvidence | None = None
         self.threshold = float(
             threshold if threshold is not None else getattr(model, "threshold", DEFAULT_THRESHOLD)
         )
@@ -180,6 +193,9 @@ class CompletionStream:
         index = self.views
         self.views += 1
         observed = int(occ.sum())
+        self.fused = False
+        if self.registered and camera_to_world is not None and transform is not None:
+            self._logits = self._fuse(self._logits, observed > 0, transform, camera_to_world)
         self.seen = self.seen or observed > 0
         self._observed = np.asarray(occ, dtype=bool)
         self.grid_to_camera = transform
@@ -190,6 +206,20 @@ class CompletionStream:
             below = self._below_plane()
             occupied = int((above if below is None else above & ~below).sum())
         return ViewResult(index, observed, occupied)
+
+    def _fuse(self, logits: np.ndarray, has_points: bool, transform: np.ndarray,
+              camera_to_world: np.ndarray) -> np.ndarray:
+        """A posed view's logits averaged with the registered evidence, which they then join (a
+        view without object points only reads it: an empty input's answer says nothing)."""
+        if self._evidence is None:
+            if not has_points:
+                return logits
+            self._evidence = E.RegisteredEvidence.around(transform, camera_to_world)
+        fused = self._evidence.fuse(logits, transform, camera_to_world, own=has_points)
+        if has_points:
+            self._evidence.add(logits, transform, camera_to_world)
+        self.fused = True
+        return E.dequantize(E.quantize(fused))  # as stored: a restored stream answers the same
 
     def _below_plane(self) -> np.ndarray | None:
         """(40, 40, 40) bool: the current grid's voxels below the support plane (None: no plane
@@ -209,6 +239,14 @@ class CompletionStream:
         if below is not None:
             probs[below] = 0.0  # nothing under the table
         return Completion(probs, self.grid_to_camera.copy(), self.threshold, self.views)
+
+    @property
+    def logits(self) -> np.ndarray:
+        """(40, 40, 40) float32: the latest view's logits in its grid (registered when
+        :attr:`fused`), before any cut; ValueError before any view."""
+        if self._logits is None:
+            raise ValueError("no view has been added yet")
+        return self._logits.copy()
 
     def observed_points(self) -> np.ndarray:
         """(n, 3) centres of the latest view's observed voxels, in its camera frame (the frame
@@ -233,8 +271,14 @@ class CompletionStream:
             arrays["grid_to_camera"] = self.grid_to_camera
         if self.camera_to_world is not None:
             arrays["camera_to_world"] = self.camera_to_world
-        if self._logits is not None:
+        if self._logits is not None and self.fused:
+            arrays["fused_logits"] = E.quantize(self._logits)
+        elif self._logits is not None:
             arrays["logits"] = self._logits
+        if self._evidence is not None:
+            arrays.update(self._evidence.to_arrays("evidence_"))
+        if not self.registered:
+            arrays["registered"] = np.array(False)
         if self._seen_bounds is not None:
             arrays["seen_bounds"] = self._seen_bounds
         if self._observed is not None:
@@ -257,6 +301,10 @@ class CompletionStream:
             stream.grid_to_camera = z["grid_to_camera"] if "grid_to_camera" in z else None
             stream.camera_to_world = z["camera_to_world"] if "camera_to_world" in z else None
             stream._logits = z["logits"] if "logits" in z else None
+            if "fused_logits" in z:
+                stream._logits, stream.fused = E.dequantize(z["fused_logits"]), True
+            stream._evidence = E.RegisteredEvidence.from_arrays(z, "evidence_")
+            stream.registered = bool(z["registered"]) if "registered" in z else True
             stream._seen_bounds = z["seen_bounds"] if "seen_bounds" in z else None
             if "observed" in z:
                 stream._observed = G.VoxelGrid.unpack(z["observed"].tobytes())

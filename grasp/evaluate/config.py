@@ -14,9 +14,12 @@ FUSION = "registered_fusion"
 #: The ablation row: the shipped MVP given each view alone (a fresh memory every view), so that
 #: MVP minus this row, on the same sequences, is what the memory adds and nothing else.
 MEMORY_OFF = "mvp_memory_off"
+#: The shipped MVP streamed as the service streams a session whose views carry camera poses: each
+#: view's logits averaged with the earlier views' in the world frame (completion.evidence).
+REGISTERED = "mvp_registered"
 #: Rows that are not learned models of their own (never bold in the tables).
 REFERENCE_ROWS: tuple[str, ...] = (MEMORY_OFF, PRIOR, FUSION)
-ROWS: tuple[str, ...] = (*MODEL_NAMES, *REFERENCE_ROWS)
+ROWS: tuple[str, ...] = (*MODEL_NAMES, REGISTERED, *REFERENCE_ROWS)
 ROW_LABELS = {
     "single_view": "Single-View",
     "mvp": "MVP",
@@ -24,6 +27,7 @@ ROW_LABELS = {
     "lstm": "LSTM",
     "mvp3": "MVP3",
     "mvp6": "MVP6",
+    REGISTERED: "MVP + camera poses (registered evidence)",
     MEMORY_OFF: "MVP, memory off: each view alone (ref.)",
     PRIOR: "Prior, ignores the input (ref.)",
     FUSION: "Registered fusion (ref.)",
@@ -176,8 +180,9 @@ def figure_rows(rows: list[str]) -> list[str]:
 
 def checkpoints_needed(rows) -> list[str]:
     """The models whose checkpoints these rows run: the model rows, and MVP for its memory-off
-    row."""
-    return [n for n in MODEL_NAMES if n in rows or (n == "mvp" and MEMORY_OFF in rows)]
+    and registered rows."""
+    return [n for n in MODEL_NAMES
+            if n in rows or (n == "mvp" and (MEMORY_OFF in rows or REGISTERED in rows))]
 
 
 @dataclass(frozen=True)

@@ -7,7 +7,13 @@ from __future__ import annotations
 import numpy as np
 
 from grasp.evaluate.cells import mean_and_se, pm
-from grasp.evaluate.config import CONDITION_LABELS, MEMORY_OFF, ROW_LABELS, TABLE_ORDER
+from grasp.evaluate.config import (
+    CONDITION_LABELS,
+    MEMORY_OFF,
+    REGISTERED,
+    ROW_LABELS,
+    TABLE_ORDER,
+)
 from grasp.evaluate.sequence_result import SequenceResult
 
 
@@ -41,6 +47,8 @@ def cell_precision(seqs: list[SequenceResult], row: str, rows: tuple[str, ...]) 
         versus("single_view", "single_view")
     if row == "mvp" and MEMORY_OFF in rows:
         versus(MEMORY_OFF, "memory_off")
+    if row == REGISTERED and "mvp" in rows:
+        versus("mvp", "mvp")
     return out
 
 
@@ -93,20 +101,23 @@ def markdown_precision(results: dict, split: str = "test") -> list[str]:
         "",
         *table("rise_vs_single_view", signed=True),
         "",
-        *_memory_table(precision, conditions, split),
+        *_paired_table(precision, conditions, split, "mvp", "memory_off",
+                       "What the memory adds: MVP minus MVP with its memory off"),
+        *_paired_table(precision, conditions, split, REGISTERED, "mvp",
+                       "What the camera poses add: MVP + camera poses minus MVP"),
     ]
 
 
-def _memory_table(precision: dict, conditions: list[str], split: str) -> list[str]:
-    """MVP minus its memory-off row, paired: the Jaccard and the rise the memory alone adds."""
-    cells = precision.get("mvp", {})
-    if not any(cells.get(c, {}).get(split, {}).get("vs_memory_off") for c in conditions):
+def _paired_table(precision: dict, conditions: list[str], split: str, row: str, key: str,
+                  title: str) -> list[str]:
+    """``row`` minus another row on the same sequences (``vs_<key>``): Jaccard and rise."""
+    cells = precision.get(row, {})
+    if not any(cells.get(c, {}).get(split, {}).get(f"vs_{key}") for c in conditions):
         return []
-    lines = ["What the memory adds: MVP minus MVP with its memory off, on the same sequences "
-             "(paired):", "",
+    lines = [f"{title}, on the same sequences (paired):", "",
              "| | " + " | ".join(CONDITION_LABELS[c] for c in conditions) + " |",
              "|---|" + "---|" * len(conditions)]
-    for key, label in (("vs_memory_off", "Jaccard"), ("rise_vs_memory_off", "Rise")):
+    for name, label in ((f"vs_{key}", "Jaccard"), (f"rise_vs_{key}", "Rise")):
         lines.append(f"| {label} | " + " | ".join(
-            pm(cells.get(c, {}).get(split, {}).get(key), signed=True) for c in conditions) + " |")
+            pm(cells.get(c, {}).get(split, {}).get(name), signed=True) for c in conditions) + " |")
     return [*lines, ""]

@@ -5,6 +5,8 @@ probabilities, with the threshold that decides occupied.
   causal and equals streaming); the benchmark streams the same model through
   :class:`completion.stream.CompletionStream`, as the service does.
 - :class:`MemoryOffRow`: the shipped MVP given each view alone (a fresh memory every view).
+- :class:`RegisteredRow`: the shipped MVP streamed with the views' camera poses
+  (:class:`completion.stream.CompletionStream`, as the service does: :mod:`completion.evidence`).
 - :class:`PriorRow`: one fixed shape per condition, whatever the input (:mod:`completion.prior`).
 - :class:`FusionRow`: no learning, the views registered with the known camera poses
   (:func:`fuse`); the benchmark's fusion row fuses with the same function.
@@ -27,6 +29,7 @@ from grasp.evaluate.config import (
     FUSION,
     MEMORY_OFF,
     PRIOR,
+    REGISTERED,
     Settings,
     checkpoints_needed,
 )
@@ -75,6 +78,22 @@ class MemoryOffRow(ModelRow):
 
         with torch.no_grad():
             return torch.sigmoid(self.model(_inputs(seq)[0][:, None]))[:, 0].numpy()
+
+
+@dataclass
+class RegisteredRow(ModelRow):
+    """The views streamed with their camera poses, each fused with the earlier ones."""
+
+    def probabilities(self, seq: Sequence) -> np.ndarray:
+        from completion.stream import CompletionStream
+
+        stream = CompletionStream(self.model, registered=True)
+        logits = []
+        for inputs, grid, pose in zip(seq.inputs, seq.grid_to_camera, seq.camera_to_world,
+                                      strict=True):
+            stream.add_view(grid=G.VoxelGrid(inputs, grid), camera_to_world=pose)
+            logits.append(stream.logits)
+        return 1.0 / (1.0 + np.exp(-np.stack(logits)))
 
 
 @dataclass
@@ -130,6 +149,8 @@ def make_rows(settings: Settings, models: dict[str, ModelRow]) -> dict[str, Row]
             rows[name] = PriorRow(name, load_prior(settings.prior_path))
         elif name == MEMORY_OFF:
             rows[name] = MemoryOffRow(name, models["mvp"].model, models["mvp"].decision)
+        elif name == REGISTERED:
+            rows[name] = RegisteredRow(name, models["mvp"].model, models["mvp"].decision)
         else:
             rows[name] = models[name]
     return rows

@@ -114,12 +114,16 @@ class Evaluator:
         ceiling: dict[str, list[float]] = {"fscore_1": [], "fscore_2": []}
         plane = "support_plane" in seq.meta
         for v in range(len(seq)):
+            below = plane and G.voxels_below_plane(seq.grid_to_camera[v], SupportPlane.from_values(
+                seq.meta["support_plane"]).transformed(seq.camera_to_world[v]))
             for row in s.rows:
                 occupied = probs[row][v] >= thresholds[row]
                 per_view[row]["jaccard"].append(metrics.jaccard(occupied, seq.targets[v]))
-                if plane:
+                if plane:  # and as the service returns it: cut at the table
                     per_view[row].setdefault("below_plane", []).append(
                         below_plane(occupied, seq, v))
+                    per_view[row].setdefault("jaccard_cut", []).append(
+                        metrics.jaccard(occupied & ~below, seq.targets[v]))
             if plane:  # the target's own share: voxels the surface cuts, centres just below
                 ceiling.setdefault("below_plane", []).append(below_plane(seq.targets[v], seq, v))
             if job.light or job.grasp_only:

@@ -8,7 +8,7 @@ from collections.abc import Iterable
 
 from completion.scenes import SINGLE_OBJECT_CONDITIONS
 from grasp.evaluate.aggregate import aggregate, fscore_ceiling, pooled_per_joint
-from grasp.evaluate.cells import CEILING_LABEL, best, fmt
+from grasp.evaluate.cells import CEILING_LABEL, best, fmt, mean_or_none
 from grasp.evaluate.config import (
     CONDITION_LABELS,
     EVAL_SPLITS,
@@ -73,6 +73,7 @@ class MainTable(Table):
             "pooled_joint_error_per_joint_deg": pooled_per_joint(results, settings),
             "per_view_jaccard": main["per_view_jaccard"],
             "jaccard_precision": main["jaccard_precision"],
+            "tabletop_as_served": _as_served(results, settings),
         }
 
     def parts(self, results: dict, *, bold: bool) -> list[tuple[list[str], str]]:
@@ -117,6 +118,7 @@ class MainTable(Table):
                 parts += markdown_precision(results)
                 out.append((parts, "jaccard"))
                 parts = []
+        parts += _as_served_markdown(results)
         parts += _pooled(results)
         parts += _grasp_success(results)
         out.append((parts, "grasps"))
@@ -184,6 +186,36 @@ def markdown_table(
         ]
         lines.append(f"| {CEILING_LABEL} | " + " | ".join(cells) + " |")
     return "\n".join(lines)
+
+
+def _as_served(results: list[SequenceResult], settings: Settings) -> dict | None:
+    """Tabletop's Jaccard as the service returns the completion, cut at the table: row -> split
+    -> mean over views and sequences (None without tabletop sequences)."""
+    mine = [r for r in results if r.job.table == MAIN_TABLE and r.job.condition == "tabletop"
+            and not r.job.grasp_only]
+    if not mine:
+        return None
+    return {row: {split: mean_or_none(j for r in mine if r.job.split == split
+                                      for j in r.per_view[row].get("jaccard_cut", []))
+                  for split in EVAL_SPLITS if any(r.job.split == split for r in mine)}
+            for row in settings.rows}
+
+
+def _as_served_markdown(results: dict) -> list[str]:
+    block = results.get("tabletop_as_served")
+    if not block:
+        return []
+    splits = list(next(iter(block.values())))
+    lines = ["## Tabletop as the service returns it (cut at the table)", "",
+             "Table I's tabletop column scores the completion as the model gives it; the service "
+             "cuts it at the table (nothing below the plane), which is what a robot plans on. "
+             "Jaccard, mean over views and sequences:", "",
+             "| Model | " + " | ".join(splits) + " |", "|---|" + "---|" * len(splits)]
+    for row, per_split in block.items():
+        lines.append(f"| {ROW_LABELS[row]} | "
+                     + " | ".join("—" if per_split[s] is None else f"{per_split[s]:.3f}"
+                                  for s in splits) + " |")
+    return [*lines, ""]
 
 
 def _grasp_success(results: dict) -> list[str]:

@@ -1,0 +1,138 @@
+"""Registered evidence: what posed views said about a still object, fused in the world frame.
+
+MVP fuses views without registration. When the views come with camera poses and the object
+stands still (an object on a table, a robot moving its camera), each view's completion can be
+carried into one world-frame grid and averaged there: view t's answer is then the mean, in log-odds,
+of its own logits and every earlier view's, each moved into view t's grid with the known poses.
+No training (docs/experiments.md has what else was tried).
+
+:class:`RegisteredEvidence` is that accumulation in constant size: a :data:`SIZE`³ world grid
+(placed on the first posed view: that view's grid centre, world axes, :data:`PITCH_SCALE` × that
+view's pitch) holding the running mean of the views' clipped logits and how many views covered
+each cell. It never grows with the views (:meth:`to_arrays`: 128 kB).
+
+The fusion of view t (:meth:`fuse`): ``(clip(L_t) + n·m) / (1 + n)`` per voxel of view t's grid,
+where m and n are the world mean and count read (trilinear) at the voxel's centre; a voxel no
+earlier view covered keeps view t's logit. Then view t's own logits join the world mean
+(:meth:`add`). A still camera sending the same view again and again therefore keeps the 1-view
+answer: the mean of equal logits is that logit. The mean is kept as :func:`quantize` stores it,
+so a stream restored from its bytes continues exactly as one that never stopped.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy import ndimage
+
+from completion.grid import GRID_SIZE, pitch_of
+
+#: The world grid's cells per side (constant: the evidence never grows with the views).
+SIZE = 40
+#: The world grid's pitch as a multiple of the first posed view's grid pitch (coarser cells frame
+#: more but blur: 32 cells at 1.5 lost 0.005 J on camera pan and tabletop against 40 at 1.0).
+PITCH_SCALE = 1.0
+#: Logits are clipped to ±this before they are averaged (a saturated view cannot outvote the
+#: others by its magnitude alone).
+CLIP = 6.0
+#: A cell counts at most this many views (uint8); past it the mean keeps moving as a running
+#: average with this weight.
+MAX_COUNT = 255
+#: Stored logits (the evidence's mean, a registered completion) are int8 in steps of CLIP / 127:
+#: a decision at any threshold between 0.003 and 0.997 moves by at most half a step (0.024).
+STEP = CLIP / 127.0
+
+
+@dataclass
+class RegisteredEvidence:
+    """A world-frame running mean of posed views' logits (:data:`SIZE`³ cells)."""
+
+    grid_to_world: np.ndarray  # (4, 4): cell index -> world point at the cell centre
+    mean: np.ndarray  # (SIZE,)*3 float32, clipped logits averaged over the views covering a cell
+    count: np.ndarray  # (SIZE,)*3 uint8, views that covered the cell (at most MAX_COUNT)
+
+    @classmethod
+    def around(cls, grid_to_camera: np.ndarray, camera_to_world: np.ndarray) -> RegisteredEvidence:
+        """Empty evidence placed on a view's grid: its centre, world axes, its pitch scaled."""
+        view = camera_to_world @ grid_to_camera
+        centre = view[:3, :3] @ np.full(3, (GRID_SIZE - 1) / 2.0) + view[:3, 3]
+        pitch = PITCH_SCALE * pitch_of(grid_to_camera)
+        grid_to_world = np.eye(4)
+        grid_to_world[:3, :3] *= pitch
+        grid_to_world[:3, 3] = centre - pitch * (SIZE - 1) / 2.0
+        shape = (SIZE,) * 3
+        return cls(grid_to_world, np.zeros(shape, np.float32), np.zeros(shape, np.uint8))
+
+    # ------------------------------------------------------------------ the two operations
+    def fuse(self, logits: np.ndarray, grid_to_camera: np.ndarray,
+             camera_to_world: np.ndarray, *, own: bool = True) -> np.ndarray:
+        """(40, 40, 40) float32: a view's logits (in its grid) averaged with the evidence;
+        ``own=False`` (a view that showed no object points): the evidence alone where it has any,
+        the view's logits elsewhere."""
+        view_to_cells = np.linalg.inv(self.grid_to_world) @ camera_to_world @ grid_to_camera
+        # the sum and the count, each fading to 0 over the half cell past the border cells
+        total = _read(self.count * self.mean, view_to_cells, GRID_SIZE)
+        count = _read(self.count.astype(np.float32), view_to_cells, GRID_SIZE)
+        logits = np.clip(logits, -CLIP, CLIP)
+        weight = 1.0 if own else np.where(count > 0, 0.0, 1.0).astype(np.float32)
+        return ((weight * logits + total) / (weight + count)).astype(np.float32)
+
+    def add(self, logits: np.ndarray, grid_to_camera: np.ndarray,
+            camera_to_world: np.ndarray) -> None:
+        """Let a view's logits (in its grid) join the mean of every cell its grid covers."""
+        cells_to_view = np.linalg.inv(camera_to_world @ grid_to_camera) @ self.grid_to_world
+        value = _read(np.clip(logits, -CLIP, CLIP), cells_to_view, SIZE)
+        covered = _covered(cells_to_view, SIZE)
+        n = np.minimum(self.count[covered].astype(np.float32) + 1, MAX_COUNT)
+        self.mean[covered] += (value[covered] - self.mean[covered]) / n
+        self.count[covered] = n.astype(np.uint8)
+        self.mean = dequantize(quantize(self.mean))
+
+    # ------------------------------------------------------------------ persistence
+    def to_arrays(self, prefix: str) -> dict[str, np.ndarray]:
+        """The evidence as named arrays (the mean as :func:`quantize` keeps it, the count)."""
+        return {f"{prefix}grid_to_world": self.grid_to_world,
+                f"{prefix}mean": quantize(self.mean),
+                f"{prefix}count": self.count}
+
+    @classmethod
+    def from_arrays(cls, arrays, prefix: str) -> RegisteredEvidence | None:
+        """The evidence stored by :meth:`to_arrays`, checked (the bytes came from storage); None
+        when there is none."""
+        if f"{prefix}mean" not in arrays:
+            return None
+        grid_to_world = np.asarray(arrays[f"{prefix}grid_to_world"], dtype=np.float64)
+        mean, count = np.asarray(arrays[f"{prefix}mean"]), np.asarray(arrays[f"{prefix}count"])
+        shape = (SIZE,) * 3
+        if (grid_to_world.shape != (4, 4) or not np.isfinite(grid_to_world).all()
+                or mean.shape != shape or mean.dtype != np.int8
+                or count.shape != shape or count.dtype != np.uint8):
+            raise ValueError("stored registered evidence is malformed")
+        return cls(grid_to_world, dequantize(mean), count)
+
+
+def quantize(logits: np.ndarray) -> np.ndarray:
+    """Logits clipped to ±:data:`CLIP` as int8 steps of :data:`STEP`."""
+    return np.round(np.clip(logits, -CLIP, CLIP) / STEP).astype(np.int8)
+
+
+def dequantize(steps: np.ndarray) -> np.ndarray:
+    return steps.astype(np.float32) * np.float32(STEP)
+
+
+def _read(volume: np.ndarray, out_to_in: np.ndarray, size: int) -> np.ndarray:
+    """``volume`` read (trilinear) at the cell centres of a ``size``³ grid whose index maps into
+    the volume's by the affine ``out_to_in`` (4×4): its border cells reach half a cell further
+    (so a grid's own centres read back exactly), then the value fades to 0 over one cell."""
+    padded = np.pad(np.pad(volume.astype(np.float32), 1, mode="edge"), 1)
+    return ndimage.affine_transform(padded, out_to_in[:3, :3], out_to_in[:3, 3] + 2.0,
+                                    output_shape=(size,) * 3, output=np.float32, order=1,
+                                    mode="constant", prefilter=False)
+
+
+def _covered(out_to_in: np.ndarray, size: int) -> np.ndarray:
+    """(size,)*3 bool: which cell centres of that grid fall in the 40³ grid's cells."""
+    index = np.indices((size,) * 3, dtype=np.float32).reshape(3, -1)
+    inner = out_to_in[:3, :3].astype(np.float32) @ index + out_to_in[:3, 3:].astype(np.float32)
+    return np.all((inner >= -0.5) & (inner < GRID_SIZE - 0.5), axis=0).reshape((size,) * 3)
