@@ -7,8 +7,8 @@ of its own logits and every earlier view's, each moved into view t's grid with t
 No training (docs/experiments.md has what else was tried).
 
 :class:`RegisteredEvidence` is that accumulation in constant size: a :data:`SIZE`³ world grid
-(placed on the first posed view: that view's grid centre, world axes, :data:`PITCH_SCALE` × that
-view's pitch) holding the running mean of the views' clipped logits and how many views covered
+(placed on the first posed view's grid: its centre and axes, :data:`PITCH_SCALE` × its
+pitch) holding the running mean of the views' clipped logits and how many views covered
 each cell. It never grows with the views (:meth:`to_arrays`: 128 kB).
 
 The fusion of view t (:meth:`fuse`): ``(clip(L_t) + n·m) / (1 + n)`` per voxel of view t's grid,
@@ -26,7 +26,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import ndimage
 
-from completion.grid import GRID_SIZE, pitch_of
+from completion.grid import GRID_SIZE
 
 #: The world grid's cells per side (constant: the evidence never grows with the views).
 SIZE = 40
@@ -54,13 +54,14 @@ class RegisteredEvidence:
 
     @classmethod
     def around(cls, grid_to_camera: np.ndarray, camera_to_world: np.ndarray) -> RegisteredEvidence:
-        """Empty evidence placed on a view's grid: its centre, world axes, its pitch scaled."""
+        """Empty evidence placed on a view's grid: its centre and axes, its pitch scaled (with
+        :data:`PITCH_SCALE` 1 and :data:`SIZE` 40, that grid itself: a camera that stays where it
+        was reads the evidence back without interpolating)."""
         view = camera_to_world @ grid_to_camera
         centre = view[:3, :3] @ np.full(3, (GRID_SIZE - 1) / 2.0) + view[:3, 3]
-        pitch = PITCH_SCALE * pitch_of(grid_to_camera)
         grid_to_world = np.eye(4)
-        grid_to_world[:3, :3] *= pitch
-        grid_to_world[:3, 3] = centre - pitch * (SIZE - 1) / 2.0
+        grid_to_world[:3, :3] = view[:3, :3] * PITCH_SCALE
+        grid_to_world[:3, 3] = centre - grid_to_world[:3, :3] @ np.full(3, (SIZE - 1) / 2.0)
         shape = (SIZE,) * 3
         return cls(grid_to_world, np.zeros(shape, np.float32), np.zeros(shape, np.uint8))
 

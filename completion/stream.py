@@ -62,6 +62,7 @@ class ViewResult:
     view_index: int  # 0-based index of this view in the stream
     observed_voxels: int  # occupied voxels of this view's input grid
     occupied_voxels: int  # voxels of the completion above the threshold
+    registered: bool = False  # the completion averaged posed views (completion.evidence)
 
 
 @dataclass(frozen=True)
@@ -205,7 +206,7 @@ class CompletionStream:
             above = self._logits >= _logit(self.threshold)
             below = self._below_plane()
             occupied = int((above if below is None else above & ~below).sum())
-        return ViewResult(index, observed, occupied)
+        return ViewResult(index, observed, occupied, self.fused)
 
     def _fuse(self, logits: np.ndarray, has_points: bool, transform: np.ndarray,
               camera_to_world: np.ndarray) -> np.ndarray:
@@ -321,6 +322,13 @@ def stored_support_plane(data: bytes) -> SupportPlane | None:
     read without a model; None when the stream has none."""
     with np.load(io.BytesIO(data), allow_pickle=False) as z:
         return _plane(z)
+
+
+def stored_registration(data: bytes) -> tuple[bool, bool]:
+    """(whether the stream fuses posed views, whether its latest completion did), read from a
+    stream state (:meth:`CompletionStream.to_bytes`) without a model."""
+    with np.load(io.BytesIO(data), allow_pickle=False) as z:
+        return (bool(z["registered"]) if "registered" in z else True), "fused_logits" in z
 
 
 def _plane(arrays) -> SupportPlane | None:

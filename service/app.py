@@ -81,7 +81,7 @@ async def _lifespan(app: FastAPI) -> AsyncIterator[None]:
     store = await anyio.to_thread.run_sync(open_store, settings)
     pipeline = await anyio.to_thread.run_sync(
         lambda: Pipeline(model, store, model_name=settings.model, max_views=settings.max_views,
-                         frame_checks=frame_checks(settings))
+                         frame_checks=frame_checks(settings), registered=settings.registered)
     )
     app.state.services = Services(
         settings=settings,

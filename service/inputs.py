@@ -64,6 +64,7 @@ class DecodedView:
     # obstacle_mask's), one about every OBSTACLE_PITCH_M at their depth; None: none sent
     others: np.ndarray | None = None
     check_frames: bool = True  # service.frames checks this view (the body's check_frames)
+    registered: bool | None = None  # the session fuses posed views from now on (None: as it did)
 
     def add_view_kwargs(self) -> dict:
         """Keyword arguments for :meth:`completion.stream.CompletionStream.add_view`."""
@@ -93,7 +94,7 @@ def decode_view(
         raise InputError(("body", "support_plane"),
                          f"{SupportPlane.NEEDS_POSES} (this view has no camera_pose)")
     posed = {"camera_to_world": pose, "support_plane": view.support_plane,
-             "check_frames": view.check_frames}
+             "check_frames": view.check_frames, "registered": view.registered}
     if view.points is not None:
         if not view.points:
             raise InputError(("body", "points"), "points is empty: send the object's observed "

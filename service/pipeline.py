@@ -74,6 +74,7 @@ class Pipeline:
         model_name: str,
         max_views: int | None = None,
         frame_checks: FrameChecks | None = DEFAULT_CHECKS,
+        registered: bool = True,
     ) -> None:
         self.model = model.eval()
         self.store = store
@@ -83,6 +84,7 @@ class Pipeline:
         grows = getattr(getattr(model, "config", None), "kind", "") == "mvt"
         self.max_views = max_views if grows else None
         self.frame_checks = frame_checks  # None: views' frames are not checked
+        self.registered = registered  # a new session fuses its posed views (completion.evidence)
 
     # ---------------------------------------------------------------------------- views
     def add_view(self, session_id: str | None, view: DecodedView) -> tuple[str, ViewResult]:
@@ -93,7 +95,7 @@ class Pipeline:
         """
         if session_id is None:
             self.store.ensure_room()
-            stream = CompletionStream(self.model)
+            stream = CompletionStream(self.model, registered=self.registered)
             self._check(stream, view)
             result = _step(stream, view)
             _keep_obstacles(stream, view)
@@ -236,6 +238,8 @@ def _keep_obstacles(stream: CompletionStream, view: DecodedView) -> None:
 
 
 def _step(stream: CompletionStream, view: DecodedView) -> ViewResult:
+    if view.registered is not None:  # the session's choice, from this view on
+        stream.registered = view.registered
     try:
         return stream.add_view(**view.add_view_kwargs())
     except ValueError as exc:  # the stream's own checks on the decoded arrays

@@ -17,7 +17,7 @@ import numpy as np
 from fastapi import APIRouter, Depends, Header, Path, Query, Request, Response, status
 
 from completion.mesh import MeshFormat, export_mesh
-from completion.stream import stored_support_plane
+from completion.stream import stored_registration, stored_support_plane
 from grasp.autograsp import pregrasp_pose
 from grasp.planner import palm_touches, too_large
 from grasp.table import hand_primitives
@@ -129,6 +129,7 @@ async def _apply_view(parsed: ParsedView, services) -> ViewOut:
         view_index=result.view_index,
         observed_voxels=result.observed_voxels,
         occupied_voxels=result.occupied_voxels,
+        completion="registered" if result.registered else "memory",
     )
 
 
@@ -233,6 +234,7 @@ async def get_session(session_id: PathId, services: ServicesDep) -> SessionOut:
     record = await services.io(services.pipeline.store.get, session_id)
     ttl = services.pipeline.store.ttl_of(record)
     plane = await services.io(stored_support_plane, record.state)
+    registered, fused = await services.io(stored_registration, record.state)
     return SessionOut(
         session_id=record.id,
         views=record.views,
@@ -241,6 +243,8 @@ async def get_session(session_id: PathId, services: ServicesDep) -> SessionOut:
         updated=datetime.fromtimestamp(record.updated, UTC),
         expires=datetime.fromtimestamp(record.updated + ttl, UTC),
         support_plane=plane,
+        registered=registered,
+        completion="registered" if fused else "memory",
     )
 
 

@@ -107,6 +107,12 @@ class ViewIn(_Strict):
         None, description="with depth: base64 8-bit PNG of the depth image's size whose "
         "non-zero pixels are the obstacles, instead of every pixel outside the mask")
 
+    registered: bool | None = Field(
+        None, description="with camera poses: fuse this session's posed views in the world frame, "
+        "the object taken as still (true), or take the model's answer alone (false, for an "
+        "object that moves); kept by the session from this view on. Absent: as the session did "
+        "(a new one: the server's GRASP_REGISTERED, on by default)")
+
     check_frames: bool = Field(
         True, description="check camera_pose and support_plane against what this view shows "
         "(the camera above the table, the object on it and where earlier views saw it): a "
@@ -135,6 +141,10 @@ class ViewOut(BaseModel):
     view_index: int = Field(description="0-based index of this view in the session")
     observed_voxels: int = Field(description="occupied voxels of this view's input grid")
     occupied_voxels: int = Field(description="voxels of the completion at the threshold")
+    completion: Literal["registered", "memory"] = Field(
+        "memory", description="registered: this view's completion averaged the session's posed "
+        "views in the world frame; memory: the model's answer alone (no camera_pose, or the "
+        "session's registered is false)")
 
 
 # ------------------------------------------------------------------------------- GET /grasp
@@ -190,6 +200,10 @@ class SessionOut(BaseModel):
         None, description="the support plane the session keeps, [nx, ny, nz, d] in the world "
         "frame (|n| = 1), once POST /views or GET /grasp gave one"
     )
+    registered: bool = Field(
+        True, description="whether the session fuses its posed views (POST /views' registered)")
+    completion: Literal["registered", "memory"] = Field(
+        "memory", description="how the latest completion was made (POST /views' completion)")
 
 
 class OccupancyOut(BaseModel):

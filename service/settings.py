@@ -124,6 +124,11 @@ class Settings(BaseSettings):
         10.0, gt=0, description="views whose object points lie farther from the camera (m) are "
         "refused: millimetres sent as metres, or a point cloud in another unit"
     )
+    registered: bool = Field(
+        True, description="sessions fuse their posed views in the world frame (the object taken "
+        "as still: completion/evidence.py); false: MVP alone, as for views without camera_pose. "
+        "A view's registered field sets it per session"
+    )
     check_frames: bool = Field(
         True, description="check each posed view's camera_pose and support_plane against what it "
         "shows (service/frames.py): a contradiction is a 422 naming the likely mistake"
