@@ -125,12 +125,15 @@ class GraspClient:
                                   transport=transport)
         self._open: list[Session] = []
 
-    def session(self, support_plane: Sequence[float] | None = None) -> Session:
+    def session(self, support_plane: Sequence[float] | None = None, *,
+                registered: bool | None = None) -> Session:
         """A new session (created on the service by its first view). ``support_plane``: the
         table the object rests on, (nx, ny, nz, d) in the world frame (n·x + d = 0, n up); it
         needs views with ``camera_pose``, is sent with the first view and kept by the session
-        (the completion is cut at it, grasps treat it as an obstacle)."""
-        session = Session(self, _plane(support_plane))
+        (the completion is cut at it, grasps treat it as an obstacle). ``registered``: whether
+        the session fuses its posed views in the world frame, the object standing still (None:
+        the service's default, on; False for an object that moves)."""
+        session = Session(self, _plane(support_plane), registered)
         self._open.append(session)
         return session
 
@@ -192,9 +195,11 @@ class Session:
     """One object's views and grasps; use :meth:`GraspClient.session`. As a context manager it
     deletes itself on exit."""
 
-    def __init__(self, client: GraspClient, support_plane: list[float] | None) -> None:
+    def __init__(self, client: GraspClient, support_plane: list[float] | None,
+                 registered: bool | None = None) -> None:
         self.client = client
         self.support_plane = support_plane
+        self.registered = registered  # sent with the first view: the session keeps it
         self.id: str | None = None
         self.last_reason: str | None = None  # why the last grasps() found none
         self.last_obstacle_voxels = 0  # obstacle voxels the last grasps() kept clear of
@@ -221,7 +226,8 @@ class Session:
         view's other pixels near the object (off the table) become obstacles every grasp keeps
         clear of, kept by the session (``obstacles=False``: none from this view;
         ``obstacle_mask`` (H, W), non-zero = obstacle: these pixels instead). Returns the
-        service's answer (``view_index``, ``observed_voxels``, ``occupied_voxels``)."""
+        service's answer (``view_index``, ``observed_voxels``, ``occupied_voxels``, and
+        ``completion``: "registered" when posed views were fused, else "memory")."""
         depth = _squeeze(depth, "depth")
         body = {"depth": _depth_field(depth, encoding), "intrinsics": _intrinsics(K)}
         if mask is not None:
@@ -311,8 +317,11 @@ class Session:
                 raise _invalid("camera_pose", str(exc)) from None
         if self.id is not None:
             body["session_id"] = self.id
-        elif self.support_plane is not None:  # the session keeps it from its first view
-            body["support_plane"] = self.support_plane
+        else:  # the session keeps these from its first view
+            if self.support_plane is not None:
+                body["support_plane"] = self.support_plane
+            if self.registered is not None:
+                body["registered"] = self.registered
         # one key per view, the same on every retry: a view whose answer was lost is not applied
         # twice (the service keeps the first answer under it)
         key = {"Idempotency-Key": uuid.uuid4().hex}
