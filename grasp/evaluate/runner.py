@@ -42,12 +42,20 @@ def truth_mesh_in_latest_camera(seq: Sequence):
 def below_plane(occupied: np.ndarray, seq: Sequence, view: int) -> float:
     """The share of ``occupied`` voxels (a 40³ bool grid of view ``view``) whose centre lies
     below the scene's support plane (``meta["support_plane"]``, world frame); 0 when empty."""
-    n = int(occupied.sum())
-    if n == 0:
-        return 0.0
+    return _share(occupied, table_voxels(seq, view))
+
+
+def table_voxels(seq: Sequence, view: int) -> np.ndarray:
+    """(40, 40, 40) bool: view ``view``'s voxels whose centre lies below the scene's support
+    plane (what the service cuts)."""
     plane = SupportPlane.from_values(seq.meta["support_plane"]).transformed(
         seq.camera_to_world[view])
-    return int((occupied & G.voxels_below_plane(seq.grid_to_camera[view], plane)).sum()) / n
+    return G.voxels_below_plane(seq.grid_to_camera[view], plane)
+
+
+def _share(occupied: np.ndarray, below: np.ndarray) -> float:
+    n = int(occupied.sum())
+    return int((occupied & below).sum()) / n if n else 0.0
 
 
 class Evaluator:
@@ -114,18 +122,16 @@ class Evaluator:
         ceiling: dict[str, list[float]] = {"fscore_1": [], "fscore_2": []}
         plane = "support_plane" in seq.meta
         for v in range(len(seq)):
-            below = plane and G.voxels_below_plane(seq.grid_to_camera[v], SupportPlane.from_values(
-                seq.meta["support_plane"]).transformed(seq.camera_to_world[v]))
+            below = table_voxels(seq, v) if plane else None
             for row in s.rows:
                 occupied = probs[row][v] >= thresholds[row]
                 per_view[row]["jaccard"].append(metrics.jaccard(occupied, seq.targets[v]))
-                if plane:  # and as the service returns it: cut at the table
-                    per_view[row].setdefault("below_plane", []).append(
-                        below_plane(occupied, seq, v))
+                if below is not None:  # and as the service returns it: cut at the table
+                    per_view[row].setdefault("below_plane", []).append(_share(occupied, below))
                     per_view[row].setdefault("jaccard_cut", []).append(
                         metrics.jaccard(occupied & ~below, seq.targets[v]))
-            if plane:  # the target's own share: voxels the surface cuts, centres just below
-                ceiling.setdefault("below_plane", []).append(below_plane(seq.targets[v], seq, v))
+            if below is not None:  # the target's own share: voxels the surface cuts
+                ceiling.setdefault("below_plane", []).append(_share(seq.targets[v], below))
             if job.light or job.grasp_only:
                 continue
             seed = key_seed(s.seed, job.table, job.condition, job.split, job.index, v)
