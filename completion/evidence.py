@@ -9,14 +9,14 @@ No training (docs/experiments.md has what else was tried).
 :class:`RegisteredEvidence` is that accumulation in constant size: a :data:`SIZE`³ world grid
 (placed on the first posed view's grid: its centre and axes, :data:`PITCH_SCALE` × its
 pitch) holding the running mean of the views' clipped logits and how many views covered
-each cell. It never grows with the views (:meth:`to_arrays`: 128 kB).
+each cell. It never grows with the views (:meth:`to_arrays`: 96 kB).
 
 The fusion of view t (:meth:`fuse`): ``(clip(L_t) + n·m) / (1 + n)`` per voxel of view t's grid,
 where m and n are the world mean and count read (trilinear) at the voxel's centre; a voxel no
-earlier view covered keeps view t's logit. Then view t's own logits join the world mean
-(:meth:`add`). A still camera sending the same view again and again therefore keeps the 1-view
-answer: the mean of equal logits is that logit. The mean is kept as :func:`quantize` stores it,
-so a stream restored from its bytes continues exactly as one that never stopped.
+earlier view covered keeps view t's logit as it is (so a first view's answer is MVP's own). Then
+view t's own logits join the world mean (:meth:`add`). A still camera sending the same view again
+and again therefore keeps the 1-view answer: the mean of equal logits is that logit. The mean is
+kept as :func:`quantize` stores it: a restored stream continues as one that never stopped.
 """
 
 from __future__ import annotations
@@ -36,9 +36,9 @@ PITCH_SCALE = 1.0
 #: Logits are clipped to ±this before they are averaged (a saturated view cannot outvote the
 #: others by its magnitude alone).
 CLIP = 6.0
-#: A cell counts at most this many views (uint8); past it the mean keeps moving as a running
-#: average with this weight.
-MAX_COUNT = 255
+#: A cell counts at most this many views (4 bits stored); past it the mean keeps moving as a
+#: running average with this weight (each new view 1/15 of it).
+MAX_COUNT = 15
 #: Stored logits (the evidence's mean, a registered completion) are int8 in steps of CLIP / 127:
 #: a decision at any threshold between 0.003 and 0.997 moves by at most half a step (0.024).
 STEP = CLIP / 127.0
@@ -75,9 +75,9 @@ class RegisteredEvidence:
         # the sum and the count, each fading to 0 over the half cell past the border cells
         total = _read(self.count * self.mean, view_to_cells, GRID_SIZE)
         count = _read(self.count.astype(np.float32), view_to_cells, GRID_SIZE)
-        logits = np.clip(logits, -CLIP, CLIP)
         weight = 1.0 if own else np.where(count > 0, 0.0, 1.0).astype(np.float32)
-        return ((weight * logits + total) / (weight + count)).astype(np.float32)
+        fused = (weight * np.clip(logits, -CLIP, CLIP) + total) / (weight + count)
+        return np.where(count > 0, fused, logits).astype(np.float32)
 
     def add(self, logits: np.ndarray, grid_to_camera: np.ndarray,
             camera_to_world: np.ndarray) -> None:
@@ -92,10 +92,12 @@ class RegisteredEvidence:
 
     # ------------------------------------------------------------------ persistence
     def to_arrays(self, prefix: str) -> dict[str, np.ndarray]:
-        """The evidence as named arrays (the mean as :func:`quantize` keeps it, the count)."""
+        """The evidence as named arrays: the mean as :func:`quantize` keeps it (64 kB), the count
+        two cells a byte (32 kB)."""
+        count = self.count.reshape(-1)
         return {f"{prefix}grid_to_world": self.grid_to_world,
                 f"{prefix}mean": quantize(self.mean),
-                f"{prefix}count": self.count}
+                f"{prefix}count": (count[0::2] << 4 | count[1::2]).astype(np.uint8)}
 
     @classmethod
     def from_arrays(cls, arrays, prefix: str) -> RegisteredEvidence | None:
@@ -104,13 +106,15 @@ class RegisteredEvidence:
         if f"{prefix}mean" not in arrays:
             return None
         grid_to_world = np.asarray(arrays[f"{prefix}grid_to_world"], dtype=np.float64)
-        mean, count = np.asarray(arrays[f"{prefix}mean"]), np.asarray(arrays[f"{prefix}count"])
+        mean = np.asarray(arrays[f"{prefix}mean"])
         shape = (SIZE,) * 3
+        packed = np.asarray(arrays[f"{prefix}count"])
         if (grid_to_world.shape != (4, 4) or not np.isfinite(grid_to_world).all()
                 or mean.shape != shape or mean.dtype != np.int8
-                or count.shape != shape or count.dtype != np.uint8):
+                or packed.shape != (SIZE**3 // 2,) or packed.dtype != np.uint8):
             raise ValueError("stored registered evidence is malformed")
-        return cls(grid_to_world, dequantize(mean), count)
+        count = np.stack([packed >> 4, packed & 15], axis=1).reshape(shape)
+        return cls(grid_to_world, dequantize(mean), count.astype(np.uint8))
 
 
 def quantize(logits: np.ndarray) -> np.ndarray:

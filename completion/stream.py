@@ -220,7 +220,7 @@ class CompletionStream:
         if has_points:
             self._evidence.add(logits, transform, camera_to_world)
         self.fused = True
-        return E.dequantize(E.quantize(fused))  # as stored: a restored stream answers the same
+        return fused.astype(np.float16).astype(np.float32)  # as stored: restored, the same
 
     def _below_plane(self) -> np.ndarray | None:
         """(40, 40, 40) bool: the current grid's voxels below the support plane (None: no plane
@@ -272,8 +272,8 @@ class CompletionStream:
             arrays["grid_to_camera"] = self.grid_to_camera
         if self.camera_to_world is not None:
             arrays["camera_to_world"] = self.camera_to_world
-        if self._logits is not None and self.fused:
-            arrays["fused_logits"] = E.quantize(self._logits)
+        if self._logits is not None and self.fused:  # float16: the state stays under 400 kB
+            arrays["fused_logits"] = self._logits.astype(np.float16)
         elif self._logits is not None:
             arrays["logits"] = self._logits
         if self._evidence is not None:
@@ -303,7 +303,7 @@ class CompletionStream:
             stream.camera_to_world = z["camera_to_world"] if "camera_to_world" in z else None
             stream._logits = z["logits"] if "logits" in z else None
             if "fused_logits" in z:
-                stream._logits, stream.fused = E.dequantize(z["fused_logits"]), True
+                stream._logits, stream.fused = z["fused_logits"].astype(np.float32), True
             stream._evidence = E.RegisteredEvidence.from_arrays(z, "evidence_")
             stream.registered = bool(z["registered"]) if "registered" in z else True
             stream._seen_bounds = z["seen_bounds"] if "seen_bounds" in z else None

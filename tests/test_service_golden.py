@@ -52,6 +52,9 @@ def golden_record(tmp_path: Path, model: str, *, n_candidates: int | None = None
     config = Settings(
         model=model,
         store_path=tmp_path / "golden.sqlite",
+        # the golden pins MVP's own completion (the model and the hand); the fusion of posed views
+        # (completion/evidence.py) has its own tests in tests/test_evidence.py
+        registered=False,
         torch_threads=torch.get_num_threads(),
         planning_processes=False,  # same plan as in a process, without spawning one here
         **({} if n_candidates is None else {"n_candidates": n_candidates}),
