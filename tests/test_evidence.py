@@ -60,7 +60,7 @@ def test_evidence_reads_back_the_view_it_was_given():
     evidence.add(logits, grid, pose)
     assert (evidence.count == 1).all()  # the first view's grid covers the whole world grid
     clipped = np.clip(logits, -E.CLIP, E.CLIP)
-    # its own grid: the mean of the view and itself, within the stored int8 step
+    # its own grid: the mean of the view and itself, within the mean's stored int8 step
     assert np.abs(evidence.fuse(logits, grid, pose) - clipped).max() <= E.STEP
     restored = E.RegisteredEvidence.from_arrays(evidence.to_arrays("e_"), "e_")
     assert np.array_equal(restored.mean, evidence.mean)
