@@ -41,6 +41,10 @@ class ModelConfig:
     alone (:func:`completion.towers.value_angles`). Without it a value is a linear map of its
     token plus the position code and cannot turn with the offset: the memory can carry only
     what does not change as the camera moves. 30 matches the simulated pans (30° a view).
+    registered_input: a second input channel, the surface earlier views of the same still object
+    saw, carried into this view's grid with the camera poses
+    (:meth:`completion.evidence.RegisteredEvidence.seen`); the U-Net's both encoders and the
+    decoder's raw-input skip take it beside the view's own surface. Without poses it is empty.
     seed: weight initialisation and the initial FAVOR+ draw.
     """
 
@@ -57,6 +61,7 @@ class ModelConfig:
     n_features: int = 128
     qk_norm: bool = False
     value_rotation: float = 0.0
+    registered_input: bool = False
     seed: int = 0
 
     def __post_init__(self) -> None:
@@ -124,9 +129,17 @@ DEFAULT_CONFIGS: dict[str, ModelConfig] = {
     "mvt": ModelConfig(kind="mvt", **_ATTENTION),
     "lstm": ModelConfig(kind="lstm"),
     "mvp_relu": ModelConfig(kind="mvp", kernel="relu", **_ATTENTION),
+    "mvp_posed": ModelConfig(kind="mvp", registered_input=True, **_ATTENTION),
 }
 """The architecture of each shipped model by name (MVP3/MVP6 differ from MVP only in the views
-they trained on); ``mvp_relu`` is MVP with the paper's ReLU kernel (no shipped weights)."""
+they trained on); ``mvp_relu`` is MVP with the paper's ReLU kernel (no shipped weights);
+``mvp_posed`` is MVP with the registered surface of earlier posed views as a second input channel
+(the model a session with camera poses runs, :mod:`completion.evidence`)."""
+
+
+#: The shipped weights a registered MVP stream runs when its views come with camera poses
+#: (:class:`completion.stream.CompletionStream`'s ``posed_model``).
+POSED_MODEL = "mvp_posed"
 
 
 def default_config(name: str, **overrides: Any) -> ModelConfig:

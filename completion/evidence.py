@@ -26,7 +26,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import ndimage
 
-from completion.grid import GRID_SIZE
+from completion.grid import GRID_SHAPE, GRID_SIZE
 
 #: The world grid's cells per side (constant: the evidence never grows with the views).
 SIZE = 40
@@ -51,6 +51,11 @@ class RegisteredEvidence:
     grid_to_world: np.ndarray  # (4, 4): cell index -> world point at the cell centre
     mean: np.ndarray  # (SIZE,)*3 float32, clipped logits averaged over the views covering a cell
     count: np.ndarray  # (SIZE,)*3 uint8, views that covered the cell (at most MAX_COUNT)
+    surface: np.ndarray | None = None  # (SIZE,)*3 bool, cells where a view saw object surface
+
+    def __post_init__(self) -> None:
+        if self.surface is None:
+            self.surface = np.zeros((SIZE,) * 3, dtype=bool)
 
     @classmethod
     def around(cls, grid_to_camera: np.ndarray, camera_to_world: np.ndarray) -> RegisteredEvidence:
@@ -90,6 +95,24 @@ class RegisteredEvidence:
         self.count[covered] = n.astype(np.uint8)
         self.mean = dequantize(quantize(self.mean))
 
+    def seen(self, grid_to_camera: np.ndarray, camera_to_world: np.ndarray) -> np.ndarray:
+        """(40, 40, 40) bool: the surface earlier views saw, in a view's grid (each voxel takes
+        the world cell its centre falls in): the second input channel of a model with
+        ``registered_input``."""
+        view_to_cells = np.linalg.inv(self.grid_to_world) @ camera_to_world @ grid_to_camera
+        index = np.indices(GRID_SHAPE).reshape(3, -1).T
+        cells, inside = _nearest_cells(index, view_to_cells)
+        out = np.zeros(GRID_SIZE**3, dtype=bool)
+        out[inside] = self.surface[tuple(cells.T)]
+        return out.reshape(GRID_SHAPE)
+
+    def add_surface(self, occupancy: np.ndarray, grid_to_camera: np.ndarray,
+                    camera_to_world: np.ndarray) -> None:
+        """Mark the world cells a view's observed voxels (its input grid) fall in."""
+        view_to_cells = np.linalg.inv(self.grid_to_world) @ camera_to_world @ grid_to_camera
+        cells, _ = _nearest_cells(np.argwhere(occupancy), view_to_cells)
+        self.surface[tuple(cells.T)] = True
+
     # ------------------------------------------------------------------ persistence
     def to_arrays(self, prefix: str) -> dict[str, np.ndarray]:
         """The evidence as named arrays: the mean as :func:`quantize` keeps it (64 kB), the count
@@ -97,7 +120,8 @@ class RegisteredEvidence:
         count = self.count.reshape(-1)
         return {f"{prefix}grid_to_world": self.grid_to_world,
                 f"{prefix}mean": quantize(self.mean),
-                f"{prefix}count": (count[0::2] << 4 | count[1::2]).astype(np.uint8)}
+                f"{prefix}count": (count[0::2] << 4 | count[1::2]).astype(np.uint8),
+                f"{prefix}surface": np.packbits(self.surface.reshape(-1))}
 
     @classmethod
     def from_arrays(cls, arrays, prefix: str) -> RegisteredEvidence | None:
@@ -114,7 +138,32 @@ class RegisteredEvidence:
                 or packed.shape != (SIZE**3 // 2,) or packed.dtype != np.uint8):
             raise ValueError("stored registered evidence is malformed")
         count = np.stack([packed >> 4, packed & 15], axis=1).reshape(shape)
-        return cls(grid_to_world, dequantize(mean), count.astype(np.uint8))
+        surface = None  # states stored before the surface was kept: none seen
+        if f"{prefix}surface" in arrays:
+            bits = np.asarray(arrays[f"{prefix}surface"])
+            if bits.shape != (SIZE**3 // 8,) or bits.dtype != np.uint8:
+                raise ValueError("stored registered evidence is malformed")
+            surface = np.unpackbits(bits).astype(bool).reshape(shape)
+        return cls(grid_to_world, dequantize(mean), count.astype(np.uint8), surface)
+
+
+def registered_surfaces(inputs: np.ndarray, grid_to_camera: np.ndarray,
+                        camera_to_world: np.ndarray) -> np.ndarray:
+    """(L, 40, 40, 40) bool: for each view of a posed sequence of a still object (a shard's
+    ``inputs``, ``grid_to_camera``, ``camera_to_world``), the surface the views before it saw,
+    in its grid, as :class:`completion.stream.CompletionStream` gives a ``registered_input``
+    model: the evidence is placed on the first view with object points; a view without points
+    adds nothing."""
+    out = np.zeros(np.shape(inputs), dtype=bool)
+    evidence = None
+    for t, occupancy in enumerate(inputs):
+        if evidence is None:
+            if not occupancy.any():
+                continue
+            evidence = RegisteredEvidence.around(grid_to_camera[t], camera_to_world[t])
+        out[t] = evidence.seen(grid_to_camera[t], camera_to_world[t])
+        evidence.add_surface(occupancy, grid_to_camera[t], camera_to_world[t])
+    return out
 
 
 def quantize(logits: np.ndarray) -> np.ndarray:
@@ -134,6 +183,14 @@ def _read(volume: np.ndarray, out_to_in: np.ndarray, size: int) -> np.ndarray:
     return ndimage.affine_transform(padded, out_to_in[:3, :3], out_to_in[:3, 3] + 2.0,
                                     output_shape=(size,) * 3, output=np.float32, order=1,
                                     mode="constant", prefilter=False)
+
+
+def _nearest_cells(index: np.ndarray, view_to_cells: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The world cells (m, 3) that voxel indices (n, 3) of a view's grid fall in, and which of
+    the n fall inside the world grid (n,) bool."""
+    cells = np.rint(index @ view_to_cells[:3, :3].T + view_to_cells[:3, 3]).astype(np.int64)
+    inside = np.all((cells >= 0) & (cells < SIZE), axis=1)
+    return cells[inside], inside
 
 
 def _covered(out_to_in: np.ndarray, size: int) -> np.ndarray:

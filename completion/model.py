@@ -82,7 +82,7 @@ class Encoder(nn.Module):
     def __init__(self, config: ModelConfig) -> None:
         super().__init__()
         self.levels = nn.ModuleList()
-        c_in = 1
+        c_in = input_channels(config)
         for c_out in config.channels:
             self.levels.append(
                 nn.Sequential(*_conv(c_in, c_out, stride=2), *_conv(c_out, c_out))
@@ -90,8 +90,9 @@ class Encoder(nn.Module):
             c_in = c_out
 
     def forward(self, grids: Tensor) -> list[Tensor]:
+        """grids: (N, C, G, G, G), C = :func:`input_channels`."""
         # channels-last: oneDNN's 3-D convolutions with few channels run 5-15x faster on the CPU
-        x = grids.unsqueeze(1).contiguous(memory_format=torch.channels_last_3d)
+        x = grids.contiguous(memory_format=torch.channels_last_3d)
         features = []
         for level in self.levels:
             x = level(x)
@@ -118,16 +119,22 @@ class Decoder(nn.Module):
             self.ups.append(nn.ConvTranspose3d(c_deep, c_skip, 2, stride=2))
             self.fuse.append(nn.Sequential(*_conv(2 * c_skip, c_skip)))
         self.top = nn.ConvTranspose3d(chans[0], config.top_channels, 2, stride=2)
-        self.out = Conv3d(config.top_channels + 1, 1, 3, padding=1)
+        self.out = Conv3d(config.top_channels + input_channels(config), 1, 3, padding=1)
 
     def forward(self, bottom: Tensor, skips: list[Tensor], grids: Tensor) -> Tensor:
         x = self.bottom(bottom)
         for up, fuse, skip in zip(self.ups, self.fuse, skips[-2::-1], strict=True):
             x = fuse(torch.cat((torch.relu(up(x)), skip), dim=1))
         x = torch.relu(self.top(x))
-        x = torch.cat((x, grids.unsqueeze(1).to(x.dtype)), dim=1)
+        x = torch.cat((x, grids.to(x.dtype)), dim=1)
         x = x.contiguous(memory_format=torch.channels_last_3d)
         return self.out(x).squeeze(1)  # (N, G, G, G)
+
+
+def input_channels(config: ModelConfig) -> int:
+    """Channels of a frame as the U-Net takes it: the view's surface, and with
+    ``registered_input`` the surface earlier posed views saw (:mod:`completion.evidence`)."""
+    return 2 if config.registered_input else 1
 
 
 def _conv(c_in: int, c_out: int, *, stride: int = 1) -> list[nn.Module]:
@@ -209,20 +216,24 @@ class CompletionModel(nn.Module):
 
     # ---- parallel ------------------------------------------------------------------------
 
-    def forward(self, seq: Tensor, *, local: Tensor | None = None) -> Tensor:
+    def forward(self, seq: Tensor, *, local: Tensor | None = None,
+                seen: Tensor | None = None) -> Tensor:
         """``local``: what the local tower and the decoder's raw-input skip see instead of
         ``seq`` (same shape); training blanks views there so that the context tower must carry
         the shape (``completion.train --blank-local``). The context tower always sees ``seq``.
+        ``seen`` (same shape): with ``registered_input``, the surface earlier posed views saw, in
+        each view's grid (None: nothing, as without poses); every tower takes it.
         """
         seq = self._check_grids(seq, ndim=5, what="seq")
         b, n = seq.shape[:2]
-        frames = seq.flatten(0, 1)  # (N, G, G, G)
         if local is not None:
             local = self._check_grids(local, ndim=5, what="local")
             if local.shape != seq.shape:
                 raise ValueError(f"local must have seq's shape {tuple(seq.shape)}, "
                                  f"got {tuple(local.shape)}")
-        local_frames = frames if local is None else local.flatten(0, 1)
+        seen = self._check_seen(seen, seq)
+        frames = self._frames(seq.flatten(0, 1), seen)  # (N, C, G, G, G)
+        local_frames = frames if local is None else self._frames(local.flatten(0, 1), seen)
         skips = self.encoder(local_frames)  # local tower: this frame alone
         bottom = skips[-1]
         if self.context_encoder is not None:
@@ -233,6 +244,24 @@ class CompletionModel(nn.Module):
             bottom = bottom + self.bridge.volume(context.flatten(0, 1)).to(bottom.dtype)
         logits = self.decoder(bottom, skips, local_frames)  # (N, G, G, G)
         return logits.view(seq.shape)
+
+    def _check_seen(self, seen: Tensor | None, like: Tensor) -> Tensor | None:
+        """``seen`` checked against the frames it goes with (flattened to (N, G, G, G))."""
+        if seen is None:
+            return None
+        if not self.config.registered_input:
+            raise ValueError("seen needs a model with registered_input (this one takes one channel)")
+        seen = self._check_grids(seen, ndim=like.ndim, what="seen")
+        if seen.shape != like.shape:
+            raise ValueError(f"seen must have the frames' shape {tuple(like.shape)}, "
+                             f"got {tuple(seen.shape)}")
+        return seen.flatten(0, seen.ndim - 4)
+
+    def _frames(self, frames: Tensor, seen: Tensor | None) -> Tensor:
+        """(N, G, G, G) -> (N, C, G, G, G): the channels the U-Net takes (:func:`input_channels`)."""
+        if not self.config.registered_input:
+            return frames.unsqueeze(1)
+        return torch.stack((frames, torch.zeros_like(frames) if seen is None else seen), dim=1)
 
     # ---- streaming -----------------------------------------------------------------------
 
@@ -246,35 +275,40 @@ class CompletionModel(nn.Module):
             state |= self.tower.init_state(batch, device=device)
         return state
 
-    def step(self, state: State, frame: Tensor) -> tuple[Tensor, State]:
-        """Consume one view: frame (B, G, G, G) -> (logits (B, G, G, G), new state).
+    def step(self, state: State, frame: Tensor, *,
+             seen: Tensor | None = None) -> tuple[Tensor, State]:
+        """Consume one view: frame (B, G, G, G) -> (logits (B, G, G, G), new state); ``seen``
+        as in :meth:`forward`.
 
         The given state is not modified, so it can be kept and stepped again.
         """
-        frame, volume, new = self._context_step(state, frame)
-        skips = self.encoder(frame)
+        frames, volume, new = self._context_step(state, frame, seen)
+        skips = self.encoder(frames)
         bottom = skips[-1] if volume is None else skips[-1] + volume.to(skips[-1].dtype)
-        return self.decoder(bottom, skips, frame), new
+        return self.decoder(bottom, skips, frames), new
 
-    def advance(self, state: State, frame: Tensor) -> State:
+    def advance(self, state: State, frame: Tensor, *, seen: Tensor | None = None) -> State:
         """Consume one view without decoding it: the state :meth:`step` would return, cheaper.
 
         For catching up on views whose completion is not needed (only the latest one usually is).
         """
-        return self._context_step(state, frame)[2]
+        return self._context_step(state, frame, seen)[2]
 
-    def _context_step(self, state: State, frame: Tensor) -> tuple[Tensor, Tensor | None, State]:
-        """One view through the context tower: (the checked frame, the bottleneck volume to add
-        (B, Cn, g, g, g) or None for Single-View, the new state)."""
+    def _context_step(self, state: State, frame: Tensor,
+                      seen: Tensor | None) -> tuple[Tensor, Tensor | None, State]:
+        """One view through the context tower: (the checked frame as the U-Net takes it
+        (B, C, G, G, G), the bottleneck volume to add (B, Cn, g, g, g) or None for Single-View,
+        the new state)."""
         frame = self._check_grids(frame, ndim=4, what="frame")
+        frames = self._frames(frame, self._check_seen(seen, frame))
         self._check_state(state, batch=frame.shape[0])
         new: State = {"t": state["t"] + 1}
         if self.context_encoder is None:
-            return frame, None, new
-        tokens = self.bridge.token(self.context_encoder(frame)[-1])  # (B, 1, D)
+            return frames, None, new
+        tokens = self.bridge.token(self.context_encoder(frames)[-1])  # (B, 1, D)
         with _full_precision(tokens):
             context, entries = self.tower.step(tokens.float(), state["t"], state)
-        return frame, self.bridge.volume(context), new | entries
+        return frames, self.bridge.volume(context), new | entries
 
     def _check_state(self, state: State, *, batch: int) -> None:
         """Keys and shapes as from ``init_state(batch)``; a KV cache may differ along T."""

@@ -43,6 +43,7 @@ import torch
 
 from completion import evidence as E
 from completion import grid as G
+
 from grasp_client.wire import SupportPlane
 
 DEFAULT_THRESHOLD = 0.5
@@ -85,10 +86,17 @@ class CompletionStream:
     """Streaming completion with one loaded model (not thread-safe: one stream per session)."""
 
     def __init__(self, model: torch.nn.Module, *, threshold: float | None = None,
-                 registered: bool = True) -> None:
+                 registered: bool = True, posed_model: torch.nn.Module | None = None) -> None:
         self.model = model.eval()
         #: fuse posed views in the world frame (:mod:`completion.evidence`; a still object)
         self.registered = registered
+        #: a ``registered_input`` model (``mvp_posed``): a registered stream whose first view
+        #: comes with its camera pose runs it instead of ``model``, fed the surface earlier views
+        #: saw (:meth:`completion.evidence.RegisteredEvidence.seen`)
+        self.posed_model = None if posed_model is None else posed_model.eval()
+        if posed_model is not None and not posed_model.config.registered_input:
+            raise ValueError("posed_model must take the registered surface (registered_input)")
+        self.on_posed = False  # this stream's memory and completions are the posed model's
         self.fused = False  # the latest completion is the registered one
         self._evidence: E.RegisteredEvidence | None = None
         self.threshold = float(
@@ -188,15 +196,25 @@ class CompletionStream:
 
     def _step(self, occ: np.ndarray, transform, camera_to_world) -> ViewResult:
         frame = torch.from_numpy(np.ascontiguousarray(occ, dtype=np.float32))[None]
+        posed = self.registered and camera_to_world is not None and transform is not None
+        if self.views == 0 and posed and self.posed_model is not None:
+            self.on_posed = True  # decided by the first view: the memory is one model's
         with torch.no_grad():
-            logits, self._state = self.model.step(self._state, frame)
+            if self.on_posed:
+                seen = np.zeros(G.GRID_SHAPE, dtype=np.float32)
+                if posed and self._evidence is not None:
+                    seen = self._evidence.seen(transform, camera_to_world).astype(np.float32)
+                logits, self._state = self.posed_model.step(
+                    self._state, frame, seen=torch.from_numpy(seen)[None])
+            else:
+                logits, self._state = self.model.step(self._state, frame)
         self._logits = logits[0].float().numpy()
         index = self.views
         self.views += 1
         observed = int(occ.sum())
         self.fused = False
-        if self.registered and camera_to_world is not None and transform is not None:
-            self._logits = self._fuse(self._logits, observed > 0, transform, camera_to_world)
+        if posed:
+            self._logits = self._fuse(self._logits, occ, transform, camera_to_world)
         self.seen = self.seen or observed > 0
         self._observed = np.asarray(occ, dtype=bool)
         self.grid_to_camera = transform
@@ -208,10 +226,12 @@ class CompletionStream:
             occupied = int((above if below is None else above & ~below).sum())
         return ViewResult(index, observed, occupied, self.fused)
 
-    def _fuse(self, logits: np.ndarray, has_points: bool, transform: np.ndarray,
+    def _fuse(self, logits: np.ndarray, occ: np.ndarray, transform: np.ndarray,
               camera_to_world: np.ndarray) -> np.ndarray:
-        """A posed view's logits averaged with the registered evidence, which they then join (a
-        view without object points only reads it: an empty input's answer says nothing)."""
+        """A posed view's logits averaged with the registered evidence, which they and the view's
+        observed surface then join (a view without object points only reads it: an empty input's
+        answer says nothing)."""
+        has_points = bool(occ.any())
         if self._evidence is None:
             if not has_points:
                 return logits
@@ -219,6 +239,7 @@ class CompletionStream:
         fused = self._evidence.fuse(logits, transform, camera_to_world, own=has_points)
         if has_points:
             self._evidence.add(logits, transform, camera_to_world)
+            self._evidence.add_surface(occ, transform, camera_to_world)
         self.fused = True
         return fused.astype(np.float16).astype(np.float32)  # as stored: restored, the same
 
@@ -280,6 +301,8 @@ class CompletionStream:
             arrays.update(self._evidence.to_arrays("evidence_"))
         if not self.registered:
             arrays["registered"] = np.array(False)
+        if self.on_posed:
+            arrays["posed_model"] = np.array(True)
         if self._seen_bounds is not None:
             arrays["seen_bounds"] = self._seen_bounds
         if self._observed is not None:
@@ -292,11 +315,17 @@ class CompletionStream:
         return buf.getvalue()
 
     @classmethod
-    def from_bytes(cls, model: torch.nn.Module, data: bytes) -> CompletionStream:
+    def from_bytes(cls, model: torch.nn.Module, data: bytes, *,
+                   posed_model: torch.nn.Module | None = None) -> CompletionStream:
+        """The stream :meth:`to_bytes` stored, with the models it was made with (ValueError when
+        it ran ``posed_model`` and none is given)."""
         from completion.model import state_from_bytes
 
         with np.load(io.BytesIO(data), allow_pickle=False) as z:
-            stream = cls(model, threshold=float(z["threshold"]))
+            stream = cls(model, threshold=float(z["threshold"]), posed_model=posed_model)
+            stream.on_posed = "posed_model" in z and bool(z["posed_model"])
+            if stream.on_posed and posed_model is None:
+                raise ValueError("this stream ran the posed model (mvp_posed); give posed_model")
             stream._state = state_from_bytes(z["model_state"].tobytes())
             stream.views = int(z["views"])
             stream.grid_to_camera = z["grid_to_camera"] if "grid_to_camera" in z else None

@@ -56,6 +56,7 @@ from completion.distributed import World, setup
 from completion.model import CompletionModel, build_model, read_checkpoint, save_checkpoint
 from completion.scenes import CONDITIONS
 from completion.validation import load_split, model_card, per_view, select_threshold, unpack
+from completion.validation import unpack_seen
 from completion.validation import validate as validate_model
 
 AUGMENTATIONS = ("mirror", "roll", "none")
@@ -66,25 +67,30 @@ def draw_batch(n: int, size: int, gen: torch.Generator) -> np.ndarray:
     return torch.randint(0, n, (size,), generator=gen).sort().values.numpy()
 
 
-def augment(x: torch.Tensor, y: torch.Tensor, gen: torch.Generator, mode: str = "mirror"):
+def augment(x: torch.Tensor, y: torch.Tensor, gen: torch.Generator, mode: str = "mirror",
+            seen: torch.Tensor | None = None):
     """Random symmetries of the camera frame, per sequence, all views alike; never a flip of z,
     the viewing direction, which decides what is seen and what is hidden.
 
     ``mirror``: flip x and/or y (grid axes i, j). ``roll``: flip both or neither, a 180° roll
     about the viewing axis: a proper rotation, so the sense in which the camera circles the
-    object is kept (a mirror reverses it, which rotary values cannot follow).
+    object is kept (a mirror reverses it, which rotary values cannot follow). ``seen`` (what
+    earlier posed views saw, in each view's grid) turns with the inputs and is returned third;
+    None stays None.
     """
     if mode not in AUGMENTATIONS:
         raise ValueError(f"augmentation must be one of {AUGMENTATIONS}, got {mode!r}")
     if mode == "none":
-        return x, y
+        return x, y, seen
     flips = torch.randint(0, 2, (len(x), 2 if mode == "mirror" else 1), generator=gen)
     for b, picks in enumerate(flips.tolist()):
         fx, fy = picks if mode == "mirror" else picks * 2
         dims = [d for d, f in ((1, fx), (2, fy)) if f]  # axes of one (L, G, G, G) sequence
         if dims:
             x[b], y[b] = x[b].flip(dims), y[b].flip(dims)
-    return x, y
+            if seen is not None:
+                seen[b] = seen[b].flip(dims)
+    return x, y, seen
 
 
 def warm_start(model: CompletionModel, path: Path) -> list[str]:
@@ -98,7 +104,9 @@ def warm_start(model: CompletionModel, path: Path) -> list[str]:
     whatever of its sequence block matches (MVT takes MVP's attention weights; an LSTM none).
     Unless the sequence block loaded whole, the context path's output layer then starts at zero,
     so the model begins exactly as the checkpoint's model without its memory and learns what
-    its own memory adds.
+    its own memory adds. A model with more input channels (``registered_input``) takes the
+    checkpoint's convolutions on the raw input for the first channel and zeros for the new one,
+    so it begins exactly as the checkpoint's model and learns what the new input adds.
     """
     payload = read_checkpoint(path)
     weights = {k: v.float() for k, v in payload["state_dict"].items()}
@@ -112,6 +120,8 @@ def warm_start(model: CompletionModel, path: Path) -> list[str]:
         weights.update({"context_" + k: v for k, v in weights.items() if k.startswith("encoder.")})
     own = model.state_dict()
     taken = {k: v for k, v in weights.items() if k in own and own[k].shape == v.shape}
+    taken |= {k: _more_inputs(v, own[k]) for k, v in weights.items()
+              if k in own and k not in taken and _more_inputs(v, own[k]) is not None}
     if not any(k.startswith("encoder.") for k in taken):
         raise ValueError(f"--init-from: {path} ({saved.kind}) shares no U-Net with this model "
                          f"({model.config.kind}): a checkpoint of the same grid and channels")
@@ -122,6 +132,18 @@ def warm_start(model: CompletionModel, path: Path) -> list[str]:
             for p in model.bridge.expand.parameters():
                 p.zero_()
     return fresh
+
+
+def _more_inputs(saved: torch.Tensor, own: torch.Tensor) -> torch.Tensor | None:
+    """A conv weight (out, in, k, k, k) widened to ``own``'s input channels, the new ones zero;
+    None unless only the input channels grew."""
+    if saved.ndim != 5 or own.ndim != 5 or saved.shape[0] != own.shape[0]:
+        return None
+    if saved.shape[2:] != own.shape[2:] or saved.shape[1] >= own.shape[1]:
+        return None
+    wide = torch.zeros(own.shape, dtype=saved.dtype)
+    wide[:, : saved.shape[1]] = saved
+    return wide
 
 
 def mask_views(
@@ -210,6 +232,7 @@ def _train(args: argparse.Namespace, world: World, device: torch.device) -> dict
     random.seed(args.seed)
     torch.set_num_threads(args.threads)
     conditions = args.conditions
+    registered = run_config(args).registered_input  # a third channel: what earlier views saw
     if world.main:  # one rank generates missing shards and writes the packed caches
         if args.train_count:
             generate(conditions, "train", args.train_count, seed=args.data_seed,
@@ -217,11 +240,12 @@ def _train(args: argparse.Namespace, world: World, device: torch.device) -> dict
         if args.val_count:
             generate(conditions, "val", args.val_count, seed=0, out=args.val_dir,
                      workers=args.workers)
-        train_set = load_split(args.train_dir, conditions, "train")
+        train_set = load_split(args.train_dir, conditions, "train", registered=registered)
     world.barrier()
     if not world.main:  # from the packed cache rank 0 wrote
-        train_set = load_split(args.train_dir, conditions, "train")
-    val_set = load_split(args.val_dir, conditions, "val") if world.main else None
+        train_set = load_split(args.train_dir, conditions, "train", registered=registered)
+    val_set = (load_split(args.val_dir, conditions, "val", registered=registered)
+               if world.main else None)
     n_all, _, full_views = train_set["packed"].shape[:3]
     # each rank draws from its own part of the training sequences (all of them on one process)
     part = np.arange(world.rank, n_all, world.size)
@@ -317,17 +341,20 @@ def _train(args: argparse.Namespace, world: World, device: torch.device) -> dict
         pick = draw_batch(n_train, args.batch_size, gen)
         idx = part[pick]
         first = int(torch.randint(0, full_views - args.views + 1, (1,), generator=gen))
-        x, y = unpack(train_set["packed"][idx, :, first : first + args.views])
-        x, y = augment(x, y, gen, args.augment)
+        window = train_set["packed"][idx, :, first : first + args.views]
+        x, y = unpack(window)
+        seen = unpack_seen(window)
+        x, y, seen = augment(x, y, gen, args.augment, seen)
         x, local = mask_views(x, gen, hide=args.hide_views, blank_local=args.blank_local,
                               hide_context=args.hide_context)
         x, y = x.to(device), y.to(device)
         local = None if local is None else local.to(device)
+        seen = None if seen is None else seen.to(device)
         decay = 0.1 + 0.45 * (1 + math.cos(math.pi * step / args.steps))  # to a tenth
         for group in opt.param_groups:  # cosine decay over the step budget
             group["lr"] = group["base_lr"] * decay
         with autocast:
-            logits = net(x, local=local)
+            logits = net(x, local=local, seen=seen)
         if weights is None:
             loss = F.binary_cross_entropy_with_logits(logits.float(), y, pos_weight=pos_weight)
         else:  # the per-view mean weighed along the sequence

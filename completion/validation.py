@@ -16,6 +16,7 @@ import numpy as np
 import torch
 
 from completion.data import load_sequence
+from completion.evidence import registered_surfaces
 from completion.grid import jaccard
 from completion.model import CompletionModel, load_checkpoint, read_checkpoint
 from completion.scenes import CONDITIONS
@@ -23,11 +24,14 @@ from completion.scenes import CONDITIONS
 THRESHOLDS = tuple(round(x, 2) for x in np.arange(0.2, 0.81, 0.05))
 
 
-def load_split(folder: Path, conditions: list[str], split: str) -> dict:
+def load_split(folder: Path, conditions: list[str], split: str, *,
+               registered: bool = False) -> dict:
     """Every shard of the given conditions in ``folder``, bit-packed in memory.
 
     ``packed``: uint8 (N, 2, L, 40, 40, 5), inputs then targets with the last axis packed 8 voxels
-    to a byte (a 4,000-sequence set takes 0.8 GB instead of 6 GB); ``condition``: one name per
+    to a byte (a 4,000-sequence set takes 0.8 GB instead of 6 GB); with ``registered`` a third
+    channel, the surface earlier views saw (:func:`completion.evidence.registered_surfaces`, what
+    a ``registered_input`` model takes); ``condition``: one name per
     sequence. The packed array is cached beside the shards (``.packed-*.npz``) so the next run
     starts in seconds; the cache is keyed by the name, size and modification time of every shard
     it holds, so regenerated shards are read again rather than taken from a stale cache.
@@ -35,7 +39,8 @@ def load_split(folder: Path, conditions: list[str], split: str) -> dict:
     paths = _shard_paths(folder, conditions, split)
     stamps = (f"{p.name} {p.stat().st_size} {p.stat().st_mtime_ns}" for p in paths)
     key = hashlib.sha1("\n".join(stamps).encode()).hexdigest()[:12]
-    cache = folder / f".packed-{split}-{key}.npz"
+    kind = "registered-" if registered else ""
+    cache = folder / f".packed-{kind}{split}-{key}.npz"
     if cache.is_file():
         with np.load(cache, allow_pickle=False) as z:
             return {"packed": z["packed"], "condition": [str(c) for c in z["condition"]]}
@@ -44,7 +49,10 @@ def load_split(folder: Path, conditions: list[str], split: str) -> dict:
     seqs = (load_sequence(p) for p in paths)
     packed, names = [], []
     for s in tqdm(seqs, total=len(paths), desc=f"load {split}", unit="seq", leave=False):
-        packed.append(np.packbits(np.stack([s.inputs, s.targets]), axis=-1))
+        channels = [s.inputs, s.targets]
+        if registered:
+            channels.append(registered_surfaces(s.inputs, s.grid_to_camera, s.camera_to_world))
+        packed.append(np.packbits(np.stack(channels), axis=-1))
         names.append(s.meta["condition"])
     out = {"packed": np.stack(packed), "condition": names}
     tmp = cache.with_name(cache.name + ".tmp.npz")
@@ -63,8 +71,15 @@ def _shard_paths(folder: Path, conditions: list[str], split: str) -> list[Path]:
 
 def unpack(packed: np.ndarray) -> tuple[torch.Tensor, torch.Tensor]:
     """(B, 2, L, 40, 40, 5) packed -> inputs, targets as float tensors (B, L, 40, 40, 40)."""
-    grids = torch.from_numpy(np.unpackbits(packed, axis=-1)).float()
+    grids = torch.from_numpy(np.unpackbits(packed[:, :2], axis=-1)).float()
     return grids[:, 0], grids[:, 1]
+
+
+def unpack_seen(packed: np.ndarray) -> torch.Tensor | None:
+    """The third channel of a ``registered`` split (B, L, 40, 40, 40) float; None without one."""
+    if packed.shape[1] < 3:
+        return None
+    return torch.from_numpy(np.unpackbits(packed[:, 2], axis=-1)).float()
 
 
 @torch.no_grad()
@@ -76,7 +91,8 @@ def validate(
     per_seq: dict[float, dict[str, list[float]]] = {t: {} for t in thresholds}
     for start in range(0, len(val["packed"]), batch):
         x, y = unpack(val["packed"][start : start + batch])
-        probs = torch.sigmoid(model(x))
+        seen = unpack_seen(val["packed"][start : start + batch])
+        probs = torch.sigmoid(model(x) if seen is None else model(x, seen=seen))
         y = y.bool()
         for t in thresholds:
             jac = jaccard((probs >= t).numpy(), y.numpy()).mean(1)  # (B,) mean over views

@@ -73,15 +73,20 @@ async def _lifespan(app: FastAPI) -> AsyncIterator[None]:
     import torch
 
     from completion.model import load_model
+    from completion.config import POSED_MODEL
 
     settings: Settings = app.state.settings
     torch.set_num_threads(settings.torch_threads)
     return_freed_memory()  # big arrays given back to the system when freed (service.memory)
     model = await anyio.to_thread.run_sync(load_model, settings.model)
+    posed = None  # MVP's sessions with camera poses run the model trained on them
+    if settings.model == "mvp":
+        posed = await anyio.to_thread.run_sync(load_model, POSED_MODEL)
     store = await anyio.to_thread.run_sync(open_store, settings)
     pipeline = await anyio.to_thread.run_sync(
         lambda: Pipeline(model, store, model_name=settings.model, max_views=settings.max_views,
-                         frame_checks=frame_checks(settings), registered=settings.registered)
+                         frame_checks=frame_checks(settings), registered=settings.registered,
+                         posed_model=posed)
     )
     app.state.services = Services(
         settings=settings,

@@ -75,11 +75,17 @@ class Pipeline:
         max_views: int | None = None,
         frame_checks: FrameChecks | None = DEFAULT_CHECKS,
         registered: bool = True,
+        posed_model: torch.nn.Module | None = None,
     ) -> None:
         self.model = model.eval()
         self.store = store
         self.model_name = model_name
+        # a stored state fits the weights that made it: with a posed model, both
         self.model_id = model_fingerprint(model)
+        if posed_model is not None:
+            self.model_id = model_fingerprint(posed_model)[:8] + self.model_id[:8]
+        #: what a registered session whose first view has a camera pose runs (``mvp_posed``)
+        self.posed_model = None if posed_model is None else posed_model.eval()
         # only a model whose state grows with every view (MVT's key/value cache) is capped
         grows = getattr(getattr(model, "config", None), "kind", "") == "mvt"
         self.max_views = max_views if grows else None
@@ -95,7 +101,8 @@ class Pipeline:
         """
         if session_id is None:
             self.store.ensure_room()
-            stream = CompletionStream(self.model, registered=self.registered)
+            stream = CompletionStream(self.model, registered=self.registered,
+                                      posed_model=self.posed_model)
             self._check(stream, view)
             result = _step(stream, view)
             _keep_obstacles(stream, view)
@@ -156,7 +163,7 @@ class Pipeline:
                 f"session {record.id!r} was made by another model (weights {record.model}); this "
                 f"server runs {self.model_name!r} (weights {self.model_id}): start a new session"
             )
-        return CompletionStream.from_bytes(self.model, record.state)
+        return CompletionStream.from_bytes(self.model, record.state, posed_model=self.posed_model)
 
     def set_support_plane(self, session_id: str, plane: SupportPlane) -> None:
         """Keep ``plane`` (world frame) with the session from now on (the caller holds its lock,

@@ -282,9 +282,10 @@ def test_augment_mirrors_or_rolls_whole_sequences_and_never_flips_z():
 
     for mode, allowed in (("mirror", {"identity", "x", "y", "roll"}),
                           ("roll", {"identity", "roll"}), ("none", {"identity"})):
-        a, b = augment(x.clone(), x.clone(), torch.Generator().manual_seed(0), mode)
+        a, b, seen = augment(x.clone(), x.clone(), torch.Generator().manual_seed(0), mode,
+                             x.clone())
         got = kinds(a)
-        assert got == kinds(b) and set(got) == allowed, (mode, set(got))
+        assert got == kinds(b) == kinds(seen) and set(got) == allowed, (mode, set(got))
     with pytest.raises(ValueError, match="augmentation must be one of"):
         augment(x, x, torch.Generator(), "rotate")
 
@@ -330,3 +331,53 @@ def test_the_run_folder_goes_beside_the_checkpoint_never_into_the_working_dir(
                  "--steps", "1", "--config", TINY, "--out", str(out), "--quiet"]) == 0
     assert (tmp_path / "elsewhere" / "tiny" / "last.pt").is_file()
     assert list(cwd.iterdir()) == []
+
+
+
+def test_a_posed_model_warm_started_from_mvp_begins_as_mvp_whatever_earlier_views_saw():
+    """--model mvp_posed --init-from mvp.pt: the new input channel's weights start at zero, so
+    the model gives MVP's logits (to float rounding) until training teaches it the channel."""
+    from completion.config import default_config
+    from completion.model import WEIGHTS_DIR, build_model, load_model
+    import torch
+
+    from completion.train import warm_start
+
+    mvp = load_model("mvp")
+    posed = build_model(default_config("mvp_posed"))
+    assert warm_start(posed, WEIGHTS_DIR / "mvp.pt") == []  # every tensor from MVP
+    posed.eval()
+    gen = torch.Generator().manual_seed(0)
+    x = (torch.rand(1, 3, 40, 40, 40, generator=gen) > 0.97).float()
+    seen = (torch.rand(1, 3, 40, 40, 40, generator=gen) > 0.9).float()
+    with torch.no_grad():
+        torch.testing.assert_close(posed(x, seen=seen), mvp(x), atol=1e-4, rtol=0)
+        with pytest.raises(ValueError, match="registered_input"):
+            mvp(x, seen=seen)
+        with pytest.raises(ValueError, match="seen must have"):
+            posed(x, seen=seen[:, :2])
+
+
+def test_a_posed_model_trains_on_what_earlier_views_saw(shards, tmp_path, capsys):
+    """--model mvp_posed: the split is packed with a third channel, each view's registered
+    surface of the views before it (completion.evidence.registered_surfaces), which the steps
+    and the validation feed the model."""
+    import numpy as np
+
+    from completion.evidence import registered_surfaces
+    from completion.model import load_checkpoint
+    from completion.validation import load_split, unpack_seen
+
+    out = tmp_path / "posed.pt"
+    args = ["--model", "mvp_posed", "--views", "3", "--train-dir", str(shards / "train"),
+            "--val-dir", str(shards / "val"), "--train-count", "0", "--val-count", "0",
+            "--steps", "2", "--val-every", "2", "--batch-size", "2", "--config", TINY,
+            "--out", str(out), "--quiet"]
+    assert main(args) == 0
+    assert load_checkpoint(out).config.registered_input
+    split = load_split(shards / "train", ["camera_pan"], "train", registered=True)
+    assert split["packed"].shape[1] == 3
+    seq = data.load_sequence(sorted((shards / "train").glob("camera_pan_*.npz"))[0])
+    expected = registered_surfaces(seq.inputs, seq.grid_to_camera, seq.camera_to_world)
+    assert expected[1:].any()  # the pan's later views got what the first saw
+    np.testing.assert_array_equal(unpack_seen(split["packed"][:1])[0].bool().numpy(), expected)

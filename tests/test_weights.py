@@ -15,7 +15,8 @@ from completion.config import DEFAULT_CONFIGS, ModelConfig
 from completion.model import WEIGHTS_DIR, load_model, read_checkpoint
 from completion.train import parse_args, run_config
 
-SHIPPED = ("single_view", "mvp", "mvp3", "mvp6", "mvt", "lstm")
+SIX = ("single_view", "mvp", "mvp3", "mvp6", "mvt", "lstm")  # the paper's models
+SHIPPED = (*SIX, "mvp_posed")  # and MVP for sessions with camera poses
 RECIPE = WEIGHTS_DIR / "recipe.sh"
 
 # mean logit over the three views, the logit at the grid's fit centre (20, 20, 18) in each view,
@@ -28,6 +29,8 @@ PINNED = {
     "mvp6": (-14.173649, (4.19814, 3.80899, 3.58903), -3.04147),
     "mvt": (-14.415553, (4.07498, 3.15479, 3.07248), -3.90224),
     "lstm": (-12.577876, (4.23893, 3.31505, 3.29921), -5.91069),
+    # stage 12: given the earlier views as what it saw before (see the test)
+    "mvp_posed": (-13.200676, (4.05619, 3.77654, 4.29702), -5.19427),
 }
 
 
@@ -64,7 +67,11 @@ def test_shipped_weights_give_the_pinned_logits(name: str) -> None:
     torch.set_num_threads(1)
     model = load_model(name)
     x = box_views()
-    parallel = model(x)
+    # the posed model is also given what earlier views saw: the views before, as one surface
+    seen = None if name != "mvp_posed" else torch.cumsum(x, 1).roll(1, 1).clamp(max=1)
+    if seen is not None:
+        seen[:, 0] = 0
+    parallel = model(x) if seen is None else model(x, seen=seen)
     mean, centre, behind = PINNED[name]
     assert parallel.double().mean().item() == pytest.approx(mean, abs=2e-5)
     got = [parallel[0, t, 20, 20, 18].item() for t in range(3)]
@@ -72,10 +79,11 @@ def test_shipped_weights_give_the_pinned_logits(name: str) -> None:
     assert parallel[0, 2, 20, 20, 30].item() == pytest.approx(behind, abs=2e-5)
     state, streamed = model.init_state(1), []
     for t in range(x.shape[1]):
-        logits, state = model.step(state, x[:, t])
+        logits, state = (model.step(state, x[:, t]) if seen is None
+                         else model.step(state, x[:, t], seen=seen[:, t]))
         streamed.append(logits)
     torch.testing.assert_close(torch.stack(streamed, 1), parallel, atol=1e-4, rtol=0)
-    assert model.threshold == pytest.approx(0.5)  # the threshold shipped for all six
+    assert model.threshold == pytest.approx(0.5)  # the threshold shipped for all seven
 
 
 def recipe_commands() -> list[list[str]]:
@@ -85,7 +93,7 @@ def recipe_commands() -> list[list[str]]:
     return [shlex.split(line) for line in out.splitlines() if line.strip()]
 
 
-def test_the_recipe_parses_and_ends_with_the_shipped_six() -> None:
+def test_the_recipe_parses_and_ends_with_the_shipped_seven() -> None:
     commands = recipe_commands()
     trains = [c[3:] for c in commands if c[:3] == ["python", "-m", "completion.train"]
               and c[3] not in ("select-threshold", "model-card")]
@@ -95,12 +103,13 @@ def test_the_recipe_parses_and_ends_with_the_shipped_six() -> None:
         args = parse_args(argv)  # every option exists and passes the command's checks
         run_config(args)
         outs.append(args.out)
-    # the last stage writes the six shipped models (an earlier one shipped its own six before);
-    # then one threshold is chosen for all
+    # stage 11 writes the six paper models (an earlier one shipped its own six before) and one
+    # threshold is chosen for all; stage 12 trains and ships the posed model last
     copies = [c for c in commands if c[0] == "cp" and c[2].startswith("completion/weights/")]
-    shipped = copies[-6:]
-    assert sorted(Path(c[2]).stem for c in shipped) == sorted(SHIPPED)
-    assert {Path(o) for o in outs[-6:]} == {Path(c[1]) for c in shipped}
+    shipped = copies[-7:-1]
+    assert sorted(Path(c[2]).stem for c in shipped) == sorted(SIX)
+    assert {Path(o) for o in outs[-7:-1]} == {Path(c[1]) for c in shipped}
+    assert Path(copies[-1][2]).stem == "mvp_posed" and Path(outs[-1]) == Path(copies[-1][1])
     assert any(c[:4] == ["python", "-m", "completion.train", "select-threshold"]
                for c in commands)
     generated = [c for c in commands if c[:4] == ["python", "-m", "completion.data", "generate"]]

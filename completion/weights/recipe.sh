@@ -130,3 +130,17 @@ for name in single_view mvp mvt lstm mvp3 mvp6; do
 done
 run python -m completion.train select-threshold --threshold 0.5 completion/weights/single_view.pt completion/weights/mvp.pt completion/weights/mvt.pt completion/weights/lstm.pt completion/weights/mvp3.pt completion/weights/mvp6.pt
 run python -m completion.prior --train-dir data/real/train --val-dir data/real/val --out completion/weights/prior.npz
+
+# 12. The posed model (issue 69): MVP with a second input channel, the surface earlier views of a
+#     still object saw, carried into each view's grid with the camera poses
+#     (completion/evidence.py). From the shipped MVP, the new channel's weights at zero (so it
+#     starts as MVP), on the stage-10 mix with half the paper conditions' sequences: tabletop 600
+#     (seed 5, the sensor model on), 120 per paper condition noiseless (seed 5) and 120 with the
+#     sensor model (seed 6); validation 24 per condition (seed 0), the same recipe as stage 10
+#     otherwise, 3,000 steps. A session with camera poses runs it; MVP's six are unchanged.
+run python -m completion.data generate --condition all --split val --count 24 --seed 0 --out data/posed/val --workers 2
+run python -m completion.data generate --condition tabletop --split train --count 600 --seed 5 --out data/posed/train --workers 2
+run python -m completion.data generate --condition $P5 --split train --count 120 --seed 5 --out data/posed/train --workers 2
+run python -m completion.data generate --condition $P5 --split train --count 120 --seed 6 --noise on --out data/posed/train --workers 2
+run python -m completion.train --model mvp_posed --conditions all --train-dir data/posed/train --val-dir data/posed/val --train-count 0 --val-count 24 --threads 2 --quiet --steps 3000 --val-every 500 --lr 3e-4 $J $ROLL --seed 5 $MEM --init-from completion/weights/mvp.pt --out runs/posed/mvp_posed.pt
+run cp runs/posed/mvp_posed.pt completion/weights/mvp_posed.pt

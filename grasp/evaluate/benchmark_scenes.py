@@ -2,15 +2,21 @@
 
 Each object (held-out: the named pybullet_data objects, one in ten, and test-split objects) rests
 on a table (the world plane z = 0) in one of its stable poses (:func:`completion.scenes.
-stable_pose`). A depth camera 0.45–0.8 m away, at 45–90° of elevation, pans 30° a view over 4
-views; every view goes through the sensor model and, as the service receives it, into a
+stable_pose`). A depth camera 0.45–0.8 m away, at 45–90° of elevation, takes 4 views spread
+around the object, :data:`AZIMUTH_STEP_DEG` of azimuth apart (a robot moving its camera around
+what it will grasp: views 0, 3, 6 and 9 of a training pan); every view goes through the sensor
+model and, as the service receives it with its camera pose, into a
 :class:`completion.stream.CompletionStream` with the table as its support plane (the completion
 is cut at it). Rows, each the top-1 grasp planned with the table as an obstacle and executed by
 the lift test on the *true* object standing on the table (guarded approach, close, lift 10 cm,
 shake; :func:`grasp.physics.lift_test`):
 
 - ``true_mesh``: planned on the true mesh itself (what a perfect completion would get);
-- ``mvp_1view`` / ``mvp_4views``: MVP's completion of the first view / of the 4-view pan;
+- ``mvp_1view`` / ``mvp_4views``: MVP's completion of the first view / of the 4 views, the camera
+  poses used as the service uses them (the posed model, :data:`completion.config.POSED_MODEL`,
+  and the registered evidence);
+- ``mvp_4views_memory``: MVP's completion of the 4 views, the poses not used (``registered=false``:
+  its memory alone, what a session without camera poses gets);
 - ``single_view_1view``: Single-View's completion of the first view;
 - ``registered_fusion_4views``: the 4 views' observed points merged with the known camera poses,
   voxelized in the last view's grid (no learning).
@@ -36,10 +42,13 @@ from completion import grid as G
 from completion.objects import load_object, object_ids
 from completion.scenes import TABLE_PLANE
 
+#: The source of a row that streams MVP without using the camera poses (``registered=false``).
+MEMORY = "mvp_memory"
 BENCHMARK_ROWS: tuple[str, ...] = (
     "true_mesh",
     "mvp_1view",
     "mvp_4views",
+    "mvp_4views_memory",
     "single_view_1view",
     "registered_fusion_4views",
     "true_mesh_verified",
@@ -51,6 +60,7 @@ ROW_SOURCES = {
     "true_mesh": (None, 0),
     "mvp_1view": ("mvp", 1),
     "mvp_4views": ("mvp", 4),
+    "mvp_4views_memory": (MEMORY, 4),
     "single_view_1view": ("single_view", 1),
     "registered_fusion_4views": ("fusion", 4),
     "true_mesh_verified": (None, 0),
@@ -61,6 +71,9 @@ ROW_SOURCES = {
 #: one is chosen (``plan(..., verify=N)``, :mod:`grasp.verify`).
 VERIFIED_ROWS = tuple(row for row in BENCHMARK_ROWS if row.endswith("_verified"))
 VIEWS = 4
+#: Azimuth between the benchmark's views (the training pans turn 30° a view; 4 views 90° apart
+#: see the object from every side, as a robot circling it would).
+AZIMUTH_STEP_DEG = 90.0
 
 
 def benchmark_objects(count: int, seed: int) -> list[str]:
@@ -102,7 +115,7 @@ def make_scene(object_id: str, index: int, seed: int, renderer) -> Scene:
     world, rng = resting_object(object_id, index, seed)
     lo, hi = world.bounds
     distance, elevation = rng.uniform(0.45, 0.8), np.radians(rng.uniform(45.0, 90.0))
-    azimuth = rng.uniform(0, 2 * np.pi) + np.radians(30.0) * np.arange(VIEWS)
+    azimuth = rng.uniform(0, 2 * np.pi) + np.radians(AZIMUTH_STEP_DEG) * np.arange(VIEWS)
     noise = np.random.default_rng([seed, zlib.crc32(b"benchmark/noise"), index])
     depths, labels, cameras = render_pan(renderer, [world], (lo + hi) / 2, distance, elevation,
                                          azimuth, noise)
@@ -137,13 +150,18 @@ def render_pan(renderer, meshes, aim, distance: float, elevation: float, azimuth
 def completion_mesh(scene: Scene, source: str, views: int, models: dict):
     """The mesh a row plans on (camera frame of its last view) and that camera's pose; the mesh
     is None when the completion is empty. ``models``: name -> :class:`~grasp.evaluate.rows.
-    ModelRow` (MVP's grid, cut at the table, is the fusion's too)."""
+    ModelRow` (MVP's grid, cut at the table, is the fusion's too); MVP streams as the service
+    does, with the posed model where ``models`` has it, unless ``source`` is :data:`MEMORY`."""
     from completion.mesh import EmptyMeshError, grid_to_mesh
+    from completion.config import POSED_MODEL
     from completion.stream import CompletionStream
     from grasp.evaluate.rows import fuse
 
-    row = models["mvp" if source == "fusion" else source]
-    stream = CompletionStream(row.model, threshold=None if source == "fusion" else row.decision)
+    row = models["mvp" if source in ("fusion", MEMORY) else source]
+    posed = models.get(POSED_MODEL) if source == "mvp" else None
+    stream = CompletionStream(row.model, threshold=None if source == "fusion" else row.decision,
+                              registered=source != MEMORY,
+                              posed_model=None if posed is None else posed.model)
     seen = []
     for t in range(views):
         stream.add_view(depth=scene.depth[t], intrinsics=scene.intrinsics, mask=scene.mask[t],

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+from completion.config import POSED_MODEL
 from completion.scenes import CONDITIONS, VIEWS
 
 MODEL_NAMES: tuple[str, ...] = ("single_view", "mvp", "mvt", "lstm", "mvp3", "mvp6")
@@ -17,6 +18,8 @@ MEMORY_OFF = "mvp_memory_off"
 #: The shipped MVP streamed as the service streams a session whose views carry camera poses: each
 #: view's logits averaged with the earlier views' in the world frame (completion.evidence).
 REGISTERED = "mvp_registered"
+#: The checkpoint the registered row runs beside MVP.
+POSED = POSED_MODEL
 #: Rows that are not learned models of their own (never bold in the tables).
 REFERENCE_ROWS: tuple[str, ...] = (MEMORY_OFF, PRIOR, FUSION)
 ROWS: tuple[str, ...] = (*MODEL_NAMES, REGISTERED, *REFERENCE_ROWS)
@@ -179,10 +182,11 @@ def figure_rows(rows: list[str]) -> list[str]:
 
 
 def checkpoints_needed(rows) -> list[str]:
-    """The models whose checkpoints these rows run: the model rows, and MVP for its memory-off
-    and registered rows."""
-    return [n for n in MODEL_NAMES
-            if n in rows or (n == "mvp" and (MEMORY_OFF in rows or REGISTERED in rows))]
+    """The models whose checkpoints these rows run: the model rows, MVP for its memory-off and
+    registered rows, and the posed model for the registered row."""
+    needed = [n for n in MODEL_NAMES
+              if n in rows or (n == "mvp" and (MEMORY_OFF in rows or REGISTERED in rows))]
+    return needed + [POSED] if REGISTERED in rows else needed
 
 
 @dataclass(frozen=True)

@@ -28,6 +28,7 @@ from grasp.evaluate.config import (
     DEFAULT_THRESHOLD,
     FUSION,
     MEMORY_OFF,
+    POSED,
     PRIOR,
     REGISTERED,
     Settings,
@@ -82,12 +83,15 @@ class MemoryOffRow(ModelRow):
 
 @dataclass
 class RegisteredRow(ModelRow):
-    """The views streamed with their camera poses, each fused with the earlier ones."""
+    """The views streamed with their camera poses as the service streams them: the posed model
+    (``mvp_posed``) fed what earlier views saw, each view's answer fused with the earlier ones."""
+
+    posed: Any = None  # the registered_input model (completion.config.POSED_MODEL)
 
     def probabilities(self, seq: Sequence) -> np.ndarray:
         from completion.stream import CompletionStream
 
-        stream = CompletionStream(self.model, registered=True)
+        stream = CompletionStream(self.model, registered=True, posed_model=self.posed)
         logits = []
         for inputs, grid, pose in zip(seq.inputs, seq.grid_to_camera, seq.camera_to_world,
                                       strict=True):
@@ -150,7 +154,8 @@ def make_rows(settings: Settings, models: dict[str, ModelRow]) -> dict[str, Row]
         elif name == MEMORY_OFF:
             rows[name] = MemoryOffRow(name, models["mvp"].model, models["mvp"].decision)
         elif name == REGISTERED:
-            rows[name] = RegisteredRow(name, models["mvp"].model, models["mvp"].decision)
+            rows[name] = RegisteredRow(name, models["mvp"].model, models["mvp"].decision,
+                                       models[POSED].model)
         else:
             rows[name] = models[name]
     return rows

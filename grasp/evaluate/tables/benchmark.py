@@ -20,12 +20,13 @@ from grasp.verify import DEFAULT_VERIFY
 LABELS = {
     "true_mesh": "True mesh (planned on the truth)",
     "mvp_1view": "MVP, 1 view",
-    "mvp_4views": "MVP, 4 views",
+    "mvp_4views": "MVP, 4 views, camera poses used",
+    "mvp_4views_memory": "MVP, 4 views, poses not used (its memory alone)",
     "single_view_1view": "Single-View, 1 view",
     "registered_fusion_4views": "Registered fusion, 4 views (ref.)",
     "true_mesh_verified": "True mesh, verified",
     "mvp_1view_verified": "MVP, 1 view, verified",
-    "mvp_4views_verified": "MVP, 4 views, verified",
+    "mvp_4views_verified": "MVP, 4 views, camera poses used, verified",
 }
 
 
@@ -65,6 +66,8 @@ class BenchmarkTable(Table):
                 return False
             if source == "fusion":
                 return FUSION in evaluator.settings.rows and "mvp" in evaluator.models
+            if source == b.MEMORY:
+                return "mvp" in evaluator.models
             return source is None or source in evaluator.models
 
         return [r for r in b.BENCHMARK_ROWS if runs(r)]
