@@ -250,7 +250,8 @@ class CompletionModel(nn.Module):
         if seen is None:
             return None
         if not self.config.registered_input:
-            raise ValueError("seen needs a model with registered_input (this one takes one channel)")
+            raise ValueError("seen needs a model with registered_input (this one takes one "
+                             "channel)")
         seen = self._check_grids(seen, ndim=like.ndim, what="seen")
         if seen.shape != like.shape:
             raise ValueError(f"seen must have the frames' shape {tuple(like.shape)}, "
@@ -258,7 +259,7 @@ class CompletionModel(nn.Module):
         return seen.flatten(0, seen.ndim - 4)
 
     def _frames(self, frames: Tensor, seen: Tensor | None) -> Tensor:
-        """(N, G, G, G) -> (N, C, G, G, G): the channels the U-Net takes (:func:`input_channels`)."""
+        """(N, G, G, G) -> (N, C, G, G, G): the U-Net's channels (:func:`input_channels`)."""
         if not self.config.registered_input:
             return frames.unsqueeze(1)
         return torch.stack((frames, torch.zeros_like(frames) if seen is None else seen), dim=1)

@@ -43,7 +43,6 @@ import torch
 
 from completion import evidence as E
 from completion import grid as G
-
 from grasp_client.wire import SupportPlane
 
 DEFAULT_THRESHOLD = 0.5

@@ -55,8 +55,14 @@ from completion.data import generate, parse_conditions
 from completion.distributed import World, setup
 from completion.model import CompletionModel, build_model, read_checkpoint, save_checkpoint
 from completion.scenes import CONDITIONS
-from completion.validation import load_split, model_card, per_view, select_threshold, unpack
-from completion.validation import unpack_seen
+from completion.validation import (
+    load_split,
+    model_card,
+    per_view,
+    select_threshold,
+    unpack,
+    unpack_seen,
+)
 from completion.validation import validate as validate_model
 
 AUGMENTATIONS = ("mirror", "roll", "none")

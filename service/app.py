@@ -72,8 +72,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
 async def _lifespan(app: FastAPI) -> AsyncIterator[None]:
     import torch
 
-    from completion.model import load_model
     from completion.config import POSED_MODEL
+    from completion.model import load_model
 
     settings: Settings = app.state.settings
     torch.set_num_threads(settings.torch_threads)

@@ -33,10 +33,7 @@ def session(tmp_path_factory):
     try:
         seq = make_sequence("camera_pan", "test", 0, seed=0, keep_depth=True)
         sid = None
-        for body in scene_views(seq)[:4]:
-            # MVP's own completion: the fused one's top grasp is seen from behind its palm in the
-            # page's first camera, which hides the object (issue 69's inspector part, open)
-            body["registered"] = False
+        for body in scene_views(seq)[:4]:  # posed views: the posed model, fused (issue 69)
             if sid:
                 body["session_id"] = sid
             r = httpx.post(f"{server.url}/views", json=body, timeout=60)

@@ -337,10 +337,10 @@ def test_the_run_folder_goes_beside_the_checkpoint_never_into_the_working_dir(
 def test_a_posed_model_warm_started_from_mvp_begins_as_mvp_whatever_earlier_views_saw():
     """--model mvp_posed --init-from mvp.pt: the new input channel's weights start at zero, so
     the model gives MVP's logits (to float rounding) until training teaches it the channel."""
-    from completion.config import default_config
-    from completion.model import WEIGHTS_DIR, build_model, load_model
     import torch
 
+    from completion.config import default_config
+    from completion.model import WEIGHTS_DIR, build_model, load_model
     from completion.train import warm_start
 
     mvp = load_model("mvp")

@@ -152,8 +152,8 @@ def completion_mesh(scene: Scene, source: str, views: int, models: dict):
     is None when the completion is empty. ``models``: name -> :class:`~grasp.evaluate.rows.
     ModelRow` (MVP's grid, cut at the table, is the fusion's too); MVP streams as the service
     does, with the posed model where ``models`` has it, unless ``source`` is :data:`MEMORY`."""
-    from completion.mesh import EmptyMeshError, grid_to_mesh
     from completion.config import POSED_MODEL
+    from completion.mesh import EmptyMeshError, grid_to_mesh
     from completion.stream import CompletionStream
     from grasp.evaluate.rows import fuse
 

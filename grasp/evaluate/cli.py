@@ -13,7 +13,7 @@ from completion.cli import HelpWithDefaults, integer_at_least, name_list
 from completion.objects import load_object, objects_in_folder
 from completion.prior import PRIOR_FILE
 from completion.scenes import CONDITIONS, VIEWS
-from grasp.evaluate.config import PRESETS, PRIOR, ROWS, Preset, Settings, checkpoints_needed
+from grasp.evaluate.config import PRESETS, PRIOR, ROWS, Preset, Settings, checkpoints_loaded
 from grasp.evaluate.figures import write_figures
 from grasp.evaluate.pool import run_jobs
 from grasp.evaluate.results_json import build_results
@@ -173,7 +173,7 @@ def settings_from_args(args: argparse.Namespace, parser: argparse.ArgumentParser
     preset = PRESETS[args.preset]
     weights = args.weights if args.weights is not None else WEIGHTS_DIR
     paths = []
-    for name in checkpoints_needed(args.models):
+    for name in checkpoints_loaded(args.models):
         path = Path(weights) / f"{name}.pt"
         if not path.is_file():
             train = f"python -m completion.train --model {name} --out {path}"

@@ -189,6 +189,14 @@ def checkpoints_needed(rows) -> list[str]:
     return needed + [POSED] if REGISTERED in rows else needed
 
 
+def checkpoints_loaded(rows) -> list[str]:
+    """:func:`checkpoints_needed`, and the posed model wherever MVP runs: the grasp benchmark's and
+    the clutter table's MVP rows stream posed views as the service does (it runs the posed model
+    for them)."""
+    needed = checkpoints_needed(rows)
+    return needed + [POSED] if "mvp" in needed and POSED not in needed else needed
+
+
 @dataclass(frozen=True)
 class Settings:
     """Everything a run depends on (written to results.json as ``config``)."""

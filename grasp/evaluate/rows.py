@@ -32,7 +32,7 @@ from grasp.evaluate.config import (
     PRIOR,
     REGISTERED,
     Settings,
-    checkpoints_needed,
+    checkpoints_loaded,
 )
 
 
@@ -129,7 +129,7 @@ def load_models(settings: Settings) -> dict[str, ModelRow]:
 
     models: dict[str, ModelRow] = {}
     for name, path in settings.model_paths:
-        if name not in checkpoints_needed(settings.rows):
+        if name not in checkpoints_loaded(settings.rows):
             continue
         model = load_model(path).eval()
         # the validation-chosen decision threshold: an attribute of the loaded model, or the

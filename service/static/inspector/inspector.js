@@ -205,8 +205,9 @@ async function main() {
   const controls = new OrbitControls(camera, renderer.domElement);
 
   // frame the completion and where the selected grasp touches it (its contacts and the palm's
-  // centre, not the whole hand), looking from the depth camera's side and from above, turned
-  // square to the grasp's approach so that the hand stands beside the object, not before it
+  // centre, not the whole hand), looking between fingers 1 and 2 (from the palm's +y, where they
+  // stand 50 mm apart; finger 3 closes from −y), a little from above: square to the approach, so
+  // that the hand stands beside the object and the face the fingers close on faces the viewer
   function frame(index) {
     scene.updateMatrixWorld(true);
     const box = new THREE.Box3().setFromObject(completion);
@@ -221,11 +222,10 @@ async function main() {
     const toward = target.clone().negate().normalize().addScaledVector(up, 0.6).normalize();
     if (grasp) {
       const palm = grasp.end_palm_pose || grasp.palm_pose;
-      const approach = new THREE.Vector3(palm[0][2], palm[1][2], palm[2][2])
-        .transformDirection(root.matrixWorld);
-      const side = toward.clone().addScaledVector(approach, -toward.dot(approach));
-      if (side.length() > 0.2) toward.copy(side.normalize());
-      else toward.crossVectors(approach, up).normalize();
+      const across = new THREE.Vector3(palm[0][1], palm[1][1], palm[2][1])
+        .transformDirection(root.matrixWorld); // the palm's +y: fingers 1 and 2's side
+      const lift = up.clone().addScaledVector(across, -up.dot(across));
+      toward.copy(across).addScaledVector(lift, 0.35).normalize();
     }
     const distance = 1.2 * sphere.radius / Math.sin(THREE.MathUtils.degToRad(fov / 2));
     camera.position.copy(target).addScaledVector(toward, distance);
