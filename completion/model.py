@@ -131,6 +131,18 @@ class Decoder(nn.Module):
         return self.out(x).squeeze(1)  # (N, G, G, G)
 
 
+def widened_inputs(saved: Tensor, own: Tensor) -> Tensor | None:
+    """A conv weight (out, in, k, k, k) widened to ``own``'s input channels, the new ones zero;
+    None unless only the input channels grew."""
+    if saved.ndim != 5 or own.ndim != 5 or saved.shape[0] != own.shape[0]:
+        return None
+    if saved.shape[2:] != own.shape[2:] or saved.shape[1] >= own.shape[1]:
+        return None
+    wide = torch.zeros(own.shape, dtype=saved.dtype)
+    wide[:, : saved.shape[1]] = saved
+    return wide
+
+
 def input_channels(config: ModelConfig) -> int:
     """Channels of a frame as the U-Net takes it: the view's surface, and with
     ``registered_input`` the surface earlier posed views saw (:mod:`completion.evidence`)."""

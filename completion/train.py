@@ -53,7 +53,13 @@ from completion.cli import DefaultsAndRawDescription, one_name
 from completion.config import DEFAULT_CONFIGS, ModelConfig, default_config
 from completion.data import generate, parse_conditions
 from completion.distributed import World, setup
-from completion.model import CompletionModel, build_model, read_checkpoint, save_checkpoint
+from completion.model import (
+    CompletionModel,
+    build_model,
+    read_checkpoint,
+    save_checkpoint,
+    widened_inputs,
+)
 from completion.scenes import CONDITIONS
 from completion.validation import (
     load_split,
@@ -126,8 +132,8 @@ def warm_start(model: CompletionModel, path: Path) -> list[str]:
         weights.update({"context_" + k: v for k, v in weights.items() if k.startswith("encoder.")})
     own = model.state_dict()
     taken = {k: v for k, v in weights.items() if k in own and own[k].shape == v.shape}
-    taken |= {k: _more_inputs(v, own[k]) for k, v in weights.items()
-              if k in own and k not in taken and _more_inputs(v, own[k]) is not None}
+    taken |= {k: widened_inputs(v, own[k]) for k, v in weights.items()
+              if k in own and k not in taken and widened_inputs(v, own[k]) is not None}
     if not any(k.startswith("encoder.") for k in taken):
         raise ValueError(f"--init-from: {path} ({saved.kind}) shares no U-Net with this model "
                          f"({model.config.kind}): a checkpoint of the same grid and channels")
@@ -138,18 +144,6 @@ def warm_start(model: CompletionModel, path: Path) -> list[str]:
             for p in model.bridge.expand.parameters():
                 p.zero_()
     return fresh
-
-
-def _more_inputs(saved: torch.Tensor, own: torch.Tensor) -> torch.Tensor | None:
-    """A conv weight (out, in, k, k, k) widened to ``own``'s input channels, the new ones zero;
-    None unless only the input channels grew."""
-    if saved.ndim != 5 or own.ndim != 5 or saved.shape[0] != own.shape[0]:
-        return None
-    if saved.shape[2:] != own.shape[2:] or saved.shape[1] >= own.shape[1]:
-        return None
-    wide = torch.zeros(own.shape, dtype=saved.dtype)
-    wide[:, : saved.shape[1]] = saved
-    return wide
 
 
 def mask_views(

@@ -232,3 +232,19 @@ def test_a_session_restarted_by_kill_9_continues_with_its_registered_evidence(
         assert grids[0]["data"] == grids[1]["data"] and grids[0]["occupied_voxels"] > 0
     finally:
         second.stop()
+
+
+def test_the_service_runs_the_posed_model_for_mvp_sessions_with_poses_only(tmp_path, tabletop):
+    """``python -m service`` with the shipped MVP: a session whose first view has a camera pose
+    runs ``mvp_posed`` (its stored state says so), one without poses runs MVP alone."""
+    import io
+
+    seq = tabletop[4]
+    with TestClient(create_app(settings(tmp_path, "mvp"))) as client:
+        posed = client.post("/views", json=_posed_view(seq, 0)).json()
+        plain = client.post("/views", json={"points": [[0, 0, 0.5], [0.02, 0, 0.5]]}).json()
+        store = client.app.state.services.pipeline.store
+        for answer, expected in ((posed, True), (plain, False)):
+            state = store.get(answer["session_id"]).state
+            with np.load(io.BytesIO(state)) as z:
+                assert ("posed_model" in z) is expected, answer
