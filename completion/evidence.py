@@ -39,6 +39,8 @@ CLIP = 6.0
 #: A cell counts at most this many views (4 bits stored); past it the mean keeps moving as a
 #: running average with this weight (each new view 1/15 of it).
 MAX_COUNT = 15
+#: Every voxel index of a view's grid (n, 3), read by :meth:`RegisteredEvidence.seen`.
+_VOXELS = np.indices(GRID_SHAPE).reshape(3, -1).T
 #: Stored logits (the evidence's mean, a registered completion) are int8 in steps of CLIP / 127:
 #: a decision at any threshold between 0.003 and 0.997 moves by at most half a step (0.024).
 STEP = CLIP / 127.0
@@ -100,8 +102,7 @@ class RegisteredEvidence:
         the world cell its centre falls in): the second input channel of a model with
         ``registered_input``."""
         view_to_cells = np.linalg.inv(self.grid_to_world) @ camera_to_world @ grid_to_camera
-        index = np.indices(GRID_SHAPE).reshape(3, -1).T
-        cells, inside = _nearest_cells(index, view_to_cells)
+        cells, inside = _nearest_cells(_VOXELS, view_to_cells)
         out = np.zeros(GRID_SIZE**3, dtype=bool)
         out[inside] = self.surface[tuple(cells.T)]
         return out.reshape(GRID_SHAPE)

@@ -132,8 +132,8 @@ def warm_start(model: CompletionModel, path: Path) -> list[str]:
         weights.update({"context_" + k: v for k, v in weights.items() if k.startswith("encoder.")})
     own = model.state_dict()
     taken = {k: v for k, v in weights.items() if k in own and own[k].shape == v.shape}
-    taken |= {k: widened_inputs(v, own[k]) for k, v in weights.items()
-              if k in own and k not in taken and widened_inputs(v, own[k]) is not None}
+    taken |= {k: wide for k, v in weights.items() if k in own and k not in taken
+              and (wide := widened_inputs(v, own[k])) is not None}
     if not any(k.startswith("encoder.") for k in taken):
         raise ValueError(f"--init-from: {path} ({saved.kind}) shares no U-Net with this model "
                          f"({model.config.kind}): a checkpoint of the same grid and channels")
@@ -338,18 +338,7 @@ def _train(args: argparse.Namespace, world: World, device: torch.device) -> dict
         if wall() - elapsed_before > budget_s:
             print(f"stopping at step {step}: --minutes {args.minutes} reached", flush=True)
             break
-        pick = draw_batch(n_train, args.batch_size, gen)
-        idx = part[pick]
-        first = int(torch.randint(0, full_views - args.views + 1, (1,), generator=gen))
-        window = train_set["packed"][idx, :, first : first + args.views]
-        x, y = unpack(window)
-        seen = unpack_seen(window)
-        x, y, seen = augment(x, y, gen, args.augment, seen)
-        x, local = mask_views(x, gen, hide=args.hide_views, blank_local=args.blank_local,
-                              hide_context=args.hide_context)
-        x, y = x.to(device), y.to(device)
-        local = None if local is None else local.to(device)
-        seen = None if seen is None else seen.to(device)
+        x, y, local, seen = _batch(train_set["packed"], part, full_views, args, gen, device)
         decay = 0.1 + 0.45 * (1 + math.cos(math.pi * step / args.steps))  # to a tenth
         for group in opt.param_groups:  # cosine decay over the step budget
             group["lr"] = group["base_lr"] * decay
@@ -392,6 +381,20 @@ def _train(args: argparse.Namespace, world: World, device: torch.device) -> dict
     if world.main:
         print(json.dumps(summary), flush=True)
     return summary
+
+
+def _batch(packed: np.ndarray, part: np.ndarray, full_views: int, args: argparse.Namespace,
+           gen: torch.Generator, device: torch.device):
+    """A step's window of ``--views`` from sequences ``part``, augmented and masked, on ``device``:
+    (inputs, targets, the local tower's or None, what earlier posed views saw or None)."""
+    idx = part[draw_batch(len(part), args.batch_size, gen)]
+    first = int(torch.randint(0, full_views - args.views + 1, (1,), generator=gen))
+    window = packed[idx, :, first : first + args.views]
+    x, y = unpack(window)
+    x, y, seen = augment(x, y, gen, args.augment, unpack_seen(window))
+    x, local = mask_views(x, gen, hide=args.hide_views, blank_local=args.blank_local,
+                          hide_context=args.hide_context)
+    return tuple(None if t is None else t.to(device) for t in (x, y, local, seen))
 
 
 def _validate_and_save(args, model, ema, opt, val_set, generators, last, *, step, best, history,

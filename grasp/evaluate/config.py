@@ -18,8 +18,6 @@ MEMORY_OFF = "mvp_memory_off"
 #: The shipped MVP streamed as the service streams a session whose views carry camera poses: each
 #: view's logits averaged with the earlier views' in the world frame (completion.evidence).
 REGISTERED = "mvp_registered"
-#: The checkpoint the registered row runs beside MVP.
-POSED = POSED_MODEL
 #: Rows that are not learned models of their own (never bold in the tables).
 REFERENCE_ROWS: tuple[str, ...] = (MEMORY_OFF, PRIOR, FUSION)
 ROWS: tuple[str, ...] = (*MODEL_NAMES, REGISTERED, *REFERENCE_ROWS)
@@ -186,7 +184,7 @@ def checkpoints_needed(rows) -> list[str]:
     registered rows, and the posed model for the registered row."""
     needed = [n for n in MODEL_NAMES
               if n in rows or (n == "mvp" and (MEMORY_OFF in rows or REGISTERED in rows))]
-    return needed + [POSED] if REGISTERED in rows else needed
+    return needed + [POSED_MODEL] if REGISTERED in rows else needed
 
 
 def checkpoints_loaded(rows) -> list[str]:
@@ -194,7 +192,7 @@ def checkpoints_loaded(rows) -> list[str]:
     the clutter table's MVP rows stream posed views as the service does (it runs the posed model
     for them)."""
     needed = checkpoints_needed(rows)
-    return needed + [POSED] if "mvp" in needed and POSED not in needed else needed
+    return needed + [POSED_MODEL] if "mvp" in needed and POSED_MODEL not in needed else needed
 
 
 @dataclass(frozen=True)

@@ -23,12 +23,12 @@ from typing import Any, Protocol
 import numpy as np
 
 from completion import grid as G
+from completion.config import POSED_MODEL
 from completion.scenes import Sequence
 from grasp.evaluate.config import (
     DEFAULT_THRESHOLD,
     FUSION,
     MEMORY_OFF,
-    POSED,
     PRIOR,
     REGISTERED,
     Settings,
@@ -155,7 +155,7 @@ def make_rows(settings: Settings, models: dict[str, ModelRow]) -> dict[str, Row]
             rows[name] = MemoryOffRow(name, models["mvp"].model, models["mvp"].decision)
         elif name == REGISTERED:
             rows[name] = RegisteredRow(name, models["mvp"].model, models["mvp"].decision,
-                                       models[POSED].model)
+                                       models[POSED_MODEL].model)
         else:
             rows[name] = models[name]
     return rows
