@@ -34,7 +34,7 @@ MIN_PITCH = 1e-3
 #: A point is inside a mesh when |generalised winding number| exceeds this.
 WINDING_THRESHOLD = 0.5
 #: Side (m) of the world-frame voxels a session keeps the other objects in view as, obstacles to
-#: the planner (:func:`voxel_keys`; ``CompletionStream.add_obstacles``, ``grasp.obstacles``).
+#: the planner (:func:`voxel_keys`; ``CompletionStream.add_obstacles``, ``grasp.search.obstacles``).
 OBSTACLE_PITCH_M = 0.005
 
 

@@ -40,18 +40,18 @@ import copy
 import json
 import math
 import random
-import shlex
 import sys
 import time
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 import torch
 from torch.nn import functional as F
 
-from completion.cli import DefaultsAndRawDescription, one_name
-from completion.config import DEFAULT_CONFIGS, ModelConfig, default_config
-from completion.data import generate, parse_conditions
+from completion import train_args
+from completion.config import ModelConfig, default_config
+from completion.data import generate
 from completion.distributed import World, setup
 from completion.model import (
     CompletionModel,
@@ -60,7 +60,8 @@ from completion.model import (
     save_checkpoint,
     widened_inputs,
 )
-from completion.scenes import CONDITIONS
+from completion.train_args import AUGMENTATIONS
+from completion.train_args import _overrides as _overrides  # re-exported: callers import it here
 from completion.validation import (
     load_split,
     model_card,
@@ -70,8 +71,6 @@ from completion.validation import (
     unpack_seen,
 )
 from completion.validation import validate as validate_model
-
-AUGMENTATIONS = ("mirror", "roll", "none")
 
 
 def draw_batch(n: int, size: int, gen: torch.Generator) -> np.ndarray:
@@ -226,11 +225,83 @@ def train(args: argparse.Namespace) -> dict:
     return summary
 
 
+@dataclass
+class _Run:
+    """One run's state, shared by the phases of :func:`_train` (setup, steps, checkpoints) so
+    that each phase takes one object instead of a dozen arguments."""
+
+    args: argparse.Namespace
+    world: World
+    device: torch.device
+    train_set: dict
+    val_set: dict | None
+    part: np.ndarray  # the training sequences this rank draws from
+    model: CompletionModel
+    net: torch.nn.Module  # what the steps call: the model, or DDP around it
+    opt: torch.optim.Optimizer
+    ema: torch.nn.Module | None
+    last: Path  # the full training state, for --resume
+    gen: torch.Generator  # this rank's sampler
+    step: int = 0
+    best: float = -1.0
+    history: list = field(default_factory=list)
+    elapsed_before: float = 0.0  # wall time of the runs this one resumes
+    skipped: int = 0
+    tic: float = 0.0
+    loss: torch.Tensor = field(default_factory=lambda: torch.zeros(()))
+
+    def wall(self) -> float:
+        return self.elapsed_before + time.perf_counter() - self.tic
+
+    def checkpoint(self) -> None:
+        """Rank 0 validates and writes; every rank hands it its sampler state first."""
+        args, world = self.args, self.world
+        n_all = len(self.train_set["packed"])
+        generators = world.gather(self.gen.get_state())
+        if world.main:
+            self.best = _validate_and_save(
+                args, self.model, self.ema, self.opt, self.val_set, generators, self.last,
+                step=self.step, best=self.best, history=self.history, wall_s=self.wall(),
+                skipped=self.skipped, loss=self.loss, n_train=n_all, device=self.device,
+                epochs=self.step * args.batch_size * world.size / n_all, world=world,
+            )
+        world.barrier()
+
+
 def _train(args: argparse.Namespace, world: World, device: torch.device) -> dict:
     torch.manual_seed(args.seed)
     np.random.seed(args.seed)
     random.seed(args.seed)
     torch.set_num_threads(args.threads)
+    train_set, val_set, part = _load_data(args, world, device)
+    model, net, opt, ema = _build(args, world, device)
+    run_dir = args.run_dir or args.out.with_suffix("")  # beside --out, never the working dir
+    run_dir.mkdir(parents=True, exist_ok=True)
+    gen = torch.Generator().manual_seed(args.seed + 1_000_003 * world.rank)
+    run = _Run(args, world, device, train_set, val_set, part, model, net, opt, ema,
+               last=run_dir / "last.pt", gen=gen)
+    if args.resume and run.last.is_file():
+        _resume(run)
+    _steps(run)
+    if not run.history or run.history[-1]["step"] != run.step:
+        run.checkpoint()
+    summary = {
+        "out": str(args.out),
+        "best_val_jaccard": run.best,
+        "steps": run.step,
+        "wall_s": round(run.wall(), 1),
+        "params": model.n_params(),
+        "history": run.history,
+        "ranks": world.size,
+    }
+    if world.main:
+        print(json.dumps(summary), flush=True)
+    return summary
+
+
+def _load_data(args: argparse.Namespace, world: World, device: torch.device):
+    """The training split (every rank), the validation split (rank 0, else None) and the
+    training sequences this rank draws from; rank 0 first generates the missing shards."""
     conditions = args.conditions
     registered = run_config(args).registered_input  # a third channel: what earlier views saw
     if world.main:  # one rank generates missing shards and writes the packed caches
@@ -258,7 +329,12 @@ def _train(args: argparse.Namespace, world: World, device: torch.device) -> dict
         ranks = f", {world.size} ranks × {n_train}" if world.distributed else ""
         print(f"train: {n_all} sequences{ranks}, val: {len(val_set['packed'])}, device {device}",
               flush=True)  # fmt: skip
+    return train_set, val_set, part
 
+
+def _build(args: argparse.Namespace, world: World, device: torch.device):
+    """The model (warm-started with ``--init-from``) on ``device``, what the steps call (DDP
+    around it on several ranks), its optimizer and, with ``--ema``, its weight average."""
     model = build_model(run_config(args))
     if args.init_from:
         fresh = warm_start(model, args.init_from)
@@ -279,108 +355,94 @@ def _train(args: argparse.Namespace, world: World, device: torch.device) -> dict
         from torch.optim.swa_utils import AveragedModel, get_ema_multi_avg_fn
 
         ema = AveragedModel(model, multi_avg_fn=get_ema_multi_avg_fn(args.ema), use_buffers=True)
-    run_dir = args.run_dir or args.out.with_suffix("")  # beside --out, never the working dir
-    run_dir.mkdir(parents=True, exist_ok=True)
-    last = run_dir / "last.pt"
-    gen = torch.Generator().manual_seed(args.seed + 1_000_003 * world.rank)
-    step, best, history, elapsed_before, skipped = 0, -1.0, [], 0.0, 0
-    if args.resume and last.is_file():
-        payload = read_checkpoint(last)
-        model.load_state_dict(payload["state_dict"])
-        base_lrs = [group["base_lr"] for group in opt.param_groups]
-        opt.load_state_dict(payload["optimizer"])  # its groups may predate base_lr
-        for group, base_lr in zip(opt.param_groups, base_lrs, strict=True):
-            group["base_lr"] = base_lr
-        generators = payload.get("generators") or [payload["generator"]]
-        if len(generators) != world.size:
-            raise ValueError(f"{last} was written by {len(generators)} rank(s); resume it with "
-                             f"the same number, not {world.size}")
-        gen.set_state(generators[world.rank])
-        if ema is not None:
-            if "ema" not in payload:
-                raise ValueError(f"{last} has no weight average; resume it without --ema")
-            ema.load_state_dict(payload["ema"])
-        step, best, history = payload["step"], payload["best"], payload["history"]
-        elapsed_before, skipped = payload["wall_s"], payload["skipped"]
-        if world.main:
-            print(f"resumed from {last} at step {step}", flush=True)
+    return model, net, opt, ema
 
+
+def _resume(run: _Run) -> None:
+    """Continue ``run.last``: weights, optimizer, this rank's sampler, weight average, counters."""
+    world, last, opt = run.world, run.last, run.opt
+    payload = read_checkpoint(last)
+    run.model.load_state_dict(payload["state_dict"])
+    base_lrs = [group["base_lr"] for group in opt.param_groups]
+    opt.load_state_dict(payload["optimizer"])  # its groups may predate base_lr
+    for group, base_lr in zip(opt.param_groups, base_lrs, strict=True):
+        group["base_lr"] = base_lr
+    generators = payload.get("generators") or [payload["generator"]]
+    if len(generators) != world.size:
+        raise ValueError(f"{last} was written by {len(generators)} rank(s); resume it with "
+                         f"the same number, not {world.size}")
+    run.gen.set_state(generators[world.rank])
+    if run.ema is not None:
+        if "ema" not in payload:
+            raise ValueError(f"{last} has no weight average; resume it without --ema")
+        run.ema.load_state_dict(payload["ema"])
+    run.step, run.best, run.history = payload["step"], payload["best"], payload["history"]
+    run.elapsed_before, run.skipped = payload["wall_s"], payload["skipped"]
+    if world.main:
+        print(f"resumed from {last} at step {run.step}", flush=True)
+
+
+def _steps(run: _Run) -> None:
+    """The optimizer steps up to ``--steps`` (or ``--minutes``), validating every
+    ``--val-every``; a non-finite loss on any rank skips its step on every rank."""
     from tqdm import tqdm
 
-    pos_weight = torch.tensor(args.pos_weight, device=device)
+    args, world, model, opt = run.args, run.world, run.model, run.opt
+    pos_weight = torch.tensor(args.pos_weight, device=run.device)
     # per-view loss weights along the sequence; None: the plain mean (the runs before the option)
     weights = None
     if args.late_weight != 1:
-        weights = view_weights(args.views, args.late_weight).to(device)
-    tic = time.perf_counter()
+        weights = view_weights(args.views, args.late_weight).to(run.device)
+    run.tic = time.perf_counter()
     budget_s = args.minutes * 60 if args.minutes else float("inf")
-    autocast = torch.autocast(device.type, dtype=torch.bfloat16, enabled=args.precision == "bf16")
-    bar = tqdm(total=args.steps, initial=step, desc=args.model, unit="step",
+    autocast = torch.autocast(run.device.type, dtype=torch.bfloat16,
+                              enabled=args.precision == "bf16")
+    bar = tqdm(total=args.steps, initial=run.step, desc=args.model, unit="step",
                disable=args.quiet or not world.main)  # fmt: skip
-    loss = torch.zeros(())
     model.train()
-
-    def wall() -> float:
-        return elapsed_before + time.perf_counter() - tic
-
-    def checkpoint() -> None:
-        """Rank 0 validates and writes; every rank hands it its sampler state first."""
-        nonlocal best
-        generators = world.gather(gen.get_state())
-        if world.main:
-            best = _validate_and_save(args, model, ema, opt, val_set, generators, last, step=step,
-                                      best=best, history=history, wall_s=wall(), skipped=skipped,
-                                      loss=loss, epochs=step * args.batch_size * world.size / n_all,
-                                      n_train=n_all, device=device, world=world)  # fmt: skip
-        world.barrier()
-
-    while step < args.steps:
-        if wall() - elapsed_before > budget_s:
-            print(f"stopping at step {step}: --minutes {args.minutes} reached", flush=True)
+    full_views = run.train_set["packed"].shape[2]
+    while run.step < args.steps:
+        if run.wall() - run.elapsed_before > budget_s:
+            print(f"stopping at step {run.step}: --minutes {args.minutes} reached", flush=True)
             break
-        x, y, local, seen = _batch(train_set["packed"], part, full_views, args, gen, device)
-        decay = 0.1 + 0.45 * (1 + math.cos(math.pi * step / args.steps))  # to a tenth
+        x, y, local, seen = _batch(run.train_set["packed"], run.part, full_views, args, run.gen,
+                                   run.device)
+        decay = 0.1 + 0.45 * (1 + math.cos(math.pi * run.step / args.steps))  # to a tenth
         for group in opt.param_groups:  # cosine decay over the step budget
             group["lr"] = group["base_lr"] * decay
         with autocast:
-            logits = net(x, local=local, seen=seen)
-        if weights is None:
-            loss = F.binary_cross_entropy_with_logits(logits.float(), y, pos_weight=pos_weight)
-        else:  # the per-view mean weighed along the sequence
-            loss = F.binary_cross_entropy_with_logits(logits.float(), y, pos_weight=pos_weight,
-                                                      reduction="none")
-            loss = (loss.mean((-3, -2, -1)) * weights).mean()
-        if args.jaccard_weight:
-            loss = loss + args.jaccard_weight * soft_jaccard_loss(logits.float(), y, weights)
+            logits = run.net(x, local=local, seen=seen)
+        run.loss = loss = _loss(args, logits, y, pos_weight, weights)
         opt.zero_grad(set_to_none=True)
-        step += 1
+        run.step += 1
         bar.update()
         if not world.all_true(bool(torch.isfinite(loss))):
-            skipped += 1  # never let one bad batch poison the weights (on any rank)
+            run.skipped += 1  # never let one bad batch poison the weights (on any rank)
         else:
             loss.backward()
             torch.nn.utils.clip_grad_norm_(model.parameters(), args.clip)
             opt.step()
-            if ema is not None:
-                ema.update_parameters(model)
+            if run.ema is not None:
+                run.ema.update_parameters(model)
             bar.set_postfix(loss=f"{loss.item():.4f}")
-        if step % args.val_every == 0 and step < args.steps:
-            checkpoint()
+        if run.step % args.val_every == 0 and run.step < args.steps:
+            run.checkpoint()
     bar.close()
-    if not history or history[-1]["step"] != step:
-        checkpoint()
-    summary = {
-        "out": str(args.out),
-        "best_val_jaccard": best,
-        "steps": step,
-        "wall_s": round(wall(), 1),
-        "params": model.n_params(),
-        "history": history,
-        "ranks": world.size,
-    }
-    if world.main:
-        print(json.dumps(summary), flush=True)
-    return summary
+
+
+def _loss(args: argparse.Namespace, logits: torch.Tensor, y: torch.Tensor,
+          pos_weight: torch.Tensor, weights: torch.Tensor | None) -> torch.Tensor:
+    """BCE with ``pos_weight`` (the per-view mean weighed by ``weights`` along the sequence, if
+    any), plus ``--jaccard-weight`` × the soft Jaccard loss."""
+    if weights is None:
+        loss = F.binary_cross_entropy_with_logits(logits.float(), y, pos_weight=pos_weight)
+    else:  # the per-view mean weighed along the sequence
+        loss = F.binary_cross_entropy_with_logits(logits.float(), y, pos_weight=pos_weight,
+                                                  reduction="none")
+        loss = (loss.mean((-3, -2, -1)) * weights).mean()
+    if args.jaccard_weight:
+        loss = loss + args.jaccard_weight * soft_jaccard_loss(logits.float(), y, weights)
+    return loss
 
 
 def _batch(packed: np.ndarray, part: np.ndarray, full_views: int, args: argparse.Namespace,
@@ -426,127 +488,10 @@ def _validate_and_save(args, model, ema, opt, val_set, generators, last, *, step
     return best
 
 
-def _overrides(text: str) -> dict:
-    """``key=value,key=value`` ModelConfig overrides; tuples as ``channels=8:16:32``, booleans
-    as ``qk_norm=true``."""
-    out: dict = {}
-    for item in filter(None, text.split(",")):
-        key, sep, value = item.partition("=")
-        if not sep:
-            raise argparse.ArgumentTypeError(f"expected key=value, got {item!r}")
-        if ":" in value:
-            out[key] = tuple(int(v) for v in value.split(":"))
-        elif value.lower() in ("true", "false"):
-            out[key] = value.lower() == "true"
-        else:
-            try:
-                out[key] = int(value)
-            except ValueError:
-                try:
-                    out[key] = float(value)
-                except ValueError:
-                    out[key] = value
-    return out
-
-
 def parse_args(argv: list[str]) -> argparse.Namespace:
-    """The training command's options, checked (files named by them are checked by :func:`main`,
-    so a recipe can be checked before its checkpoints exist)."""
-    p = argparse.ArgumentParser(
-        prog="python -m completion.train",
-        description=__doc__,
-        formatter_class=DefaultsAndRawDescription,
-    )
-    p.add_argument("--model", type=one_name(tuple(sorted(DEFAULT_CONFIGS)), "models"),
-                   required=True, help=f"one of {', '.join(sorted(DEFAULT_CONFIGS))}")
-    p.add_argument("--conditions", type=parse_conditions, default=list(CONDITIONS))
-    p.add_argument("--views", type=int, default=12, help="views per training window (3, 6, 12)")
-    p.add_argument("--train-dir", type=Path, default=Path("data/train"))
-    p.add_argument("--val-dir", type=Path, default=Path("data/val"))
-    p.add_argument("--train-count", type=int, default=800,
-                   help="sequences per condition to have in --train-dir (generated if missing; "
-                   "0 = use what is there)")
-    p.add_argument("--val-count", type=int, default=24)
-    p.add_argument("--data-seed", type=int, default=1,
-                   help="seed of the training shards (the evaluation draws seed 0)")
-    p.add_argument("--workers", type=int, default=2, help="processes for data generation")
-    p.add_argument("--steps", type=int, default=1000,
-                   help="optimizer steps (the budget; the learning rate decays over it)")
-    p.add_argument("--minutes", type=float, default=0.0,
-                   help="wall-time cap in minutes on top of --steps (0 = none)")
-    p.add_argument("--val-every", type=int, default=250, help="validate every N steps")
-    p.add_argument("--batch-size", type=int, default=2, help="sequences per step")
-    p.add_argument("--lr", type=float, default=2e-3)
-    p.add_argument("--pos-weight", type=float, default=2.0)
-    p.add_argument("--jaccard-weight", type=float, default=0.0, metavar="W",
-                   help="add W × (1 − soft Jaccard per view) to the loss (0: BCE alone)")
-    p.add_argument("--ema", type=float, default=0.0, metavar="DECAY",
-                   help="validate and ship an exponential moving average of the weights with "
-                        "this decay per step, e.g. 0.999 (0: the raw weights)")
-    p.add_argument("--clip", type=float, default=1.0, help="gradient norm clip")
-    p.add_argument("--config", type=_overrides, default={},
-                   help="ModelConfig overrides, e.g. embed_dim=128,channels=8:16:32")
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--device", default="auto", help="auto, cpu or cuda")
-    p.add_argument("--threads", type=int, default=2)
-    p.add_argument("--out", type=Path, required=True, help="best checkpoint path")
-    p.add_argument("--run-dir", type=Path, default=None,
-                   help="where last.pt (the state --resume continues) goes; default: --out "
-                   "without its suffix (runs/mvp.pt -> runs/mvp/)")
-    p.add_argument("--resume", action="store_true", help="continue <run-dir>/last.pt")
-    p.add_argument("--init-from", type=Path, default=None,
-                   help="start from a checkpoint: the same model whole, or every tensor another "
-                   "kind shares with it (a Single-View U-Net, a multi-view model's towers); "
-                   "default: random initialisation")
-    p.add_argument("--precision", choices=("fp32", "bf16"), default="fp32",
-                   help="bf16 autocast for the convolutions (fp32 master weights)")
-    p.add_argument("--augment", choices=AUGMENTATIONS, default="mirror",
-                   help="random symmetry of each training sequence: mirror (x and/or y), roll "
-                   "(x and y together: keeps the sense of a camera pan) or none")
-    p.add_argument("--no-augment", dest="augment", action="store_const", const="none",
-                   help="same as --augment none")
-    p.add_argument("--blank-local", type=float, default=0.0, metavar="P",
-                   help="multi-view models: hide each training view from the local tower with "
-                   "probability P (the context tower still sees it), so that the memory path "
-                   "learns to carry the shape; 0 = off")
-    p.add_argument("--hide-views", type=float, default=0.0, metavar="P",
-                   help="multi-view models: blank each training view after the first from both "
-                   "towers with probability P (the target stays), so that the memory must carry "
-                   "earlier views' shape into the current view's frame; 0 = off")
-    p.add_argument("--hide-context", type=float, default=0.0, metavar="P",
-                   help="multi-view models: blank each training view after the first from the "
-                   "context tower alone with probability P (the local tower still sees it), so "
-                   "that the memory of earlier views must be merged with the current view; "
-                   "0 = off")
-    p.add_argument("--late-weight", type=float, default=1.0, metavar="W",
-                   help="multi-view models: the last view's loss weighs W times the first's, "
-                   "linear in between (mean 1), so that the gradient favours what the memory adds "
-                   "as views accumulate; 1 = every view alike")
-    p.add_argument("--quiet", action="store_true", help="no progress bar")
-    args = p.parse_args(argv)
-    for name in ("views", "steps", "val_every", "batch_size", "threads"):
-        if getattr(args, name) < 1:
-            p.error(f"--{name.replace('_', '-')} must be ≥ 1, got {getattr(args, name)}")
-    for flag in ("blank_local", "hide_views", "hide_context"):  # view-masking probabilities
-        value, name = getattr(args, flag), "--" + flag.replace("_", "-")
-        if not 0.0 <= value < 1.0:
-            p.error(f"{name} must be in [0, 1), got {value}")
-        if value and args.model == "single_view":
-            p.error(f"{name} needs a multi-view model (single_view has no context tower)")
-    if not (1.0 <= args.late_weight <= 10.0):
-        p.error(f"--late-weight must be in [1, 10], got {args.late_weight}")
-    if args.late_weight != 1 and args.model == "single_view":
-        p.error("--late-weight needs a multi-view model (single_view has no memory)")
-    if not (args.jaccard_weight >= 0 and math.isfinite(args.jaccard_weight)):
-        p.error(f"--jaccard-weight must be a finite number ≥ 0, got {args.jaccard_weight}")
-    if not 0.0 <= args.ema < 1.0:
-        p.error(f"--ema must be in [0, 1), got {args.ema}")
-    try:
-        default_config(args.model, **args.config)
-    except (TypeError, ValueError) as err:
-        p.error(f"--config: {err}")
-    args.command = "python -m completion.train " + shlex.join(argv)
-    return args
+    """The training command's options, checked (:mod:`completion.train_args`; files named by
+    them are checked by :func:`main`, so a recipe can be checked before its checkpoints exist)."""
+    return train_args.parse_args(argv, description=__doc__)
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -5,7 +5,7 @@ vendored there with its licence, so it works with no internet). The page holds n
 ``GET /grasp``, ``GET /sessions/{id}/mesh?format=obj`` and ``GET /sessions/{id}/observed``, the
 API every client uses, and draws the latest view's observed points, the completion
 (semi-transparent), the BarrettHand at each of the top-k grasps (its links placed by the hand's
-kinematics, :func:`grasp.table.hand_primitives`) and the support plane when one was given.
+kinematics, :func:`grasp.hand.table.hand_primitives`) and the support plane when one was given.
 The page and its assets need no token (they carry no data); its API calls send the token given
 in the page's URL fragment (``#token=…``), which browsers never send to the server.
 

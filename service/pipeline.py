@@ -23,7 +23,7 @@ import trimesh
 from completion.grid import VoxelGrid, transform_points
 from completion.mesh import grid_to_mesh
 from completion.stream import Completion, CompletionStream, ViewResult
-from grasp.obstacles import seen_others
+from grasp.search.obstacles import seen_others
 from grasp_client.wire import SupportPlane
 from service.frames import DEFAULT_CHECKS, FrameChecks, Previous, check_view
 from service.inputs import DecodedView, InputError
@@ -232,7 +232,7 @@ def _snapshot(record: SessionRecord, stream: CompletionStream, completion: Compl
 
 
 def _keep_obstacles(stream: CompletionStream, view: DecodedView) -> None:
-    """Keep the view's other pixels that are obstacles (:func:`grasp.obstacles.seen_others`)
+    """Keep the view's other pixels that are obstacles (:func:`grasp.search.obstacles.seen_others`)
     with the session, world frame: a view with a camera pose, in a session with a table."""
     if (view.others is None or view.camera_to_world is None or stream.support_plane is None
             or not len(view.others) or view.points is None or not len(view.points)):

@@ -12,7 +12,7 @@ it reaches a worker, and a plan is kept (``GRASP_PLAN_CACHE`` plans, least recen
 so that asking again about an unchanged mesh with the same options costs nothing: the inspector
 page, ``scene.glb`` and a robot polling ``GET /grasp`` between views all hit it.
 
-With ``verify=N`` (:mod:`grasp.verify`) the plan ranks every autograsped grasp, a second worker
+With ``verify=N`` (:mod:`grasp.physics.verify`) the plan ranks every autograsped grasp, a second worker
 computes the completion's convex pieces meanwhile (:func:`decompose`, into the disk cache the lift
 test reads), and then each tried grasp's trials run at once, each in a worker slot of its own taken
 in turn with other requests' plans (:func:`lift_trial`), so that one request's verification does
@@ -55,7 +55,7 @@ class PlanRequest:
     the seed, how many grasps come back, the table (a :class:`grasp_client.wire.SupportPlane` in
     the mesh's frame, or None), the obstacles (voxel centres (k, 3) in the mesh's frame, of the
     session's pitch :data:`completion.grid.OBSTACLE_PITCH_M`, or None) and how many of the best
-    grasps to lift-test before answering (:mod:`grasp.verify`)."""
+    grasps to lift-test before answering (:mod:`grasp.physics.verify`)."""
 
     vertices: np.ndarray
     faces: np.ndarray
@@ -89,8 +89,8 @@ def plan_grasps(request: PlanRequest) -> tuple[list, float]:
     verified: the verification picks from them); also its seconds."""
     import trimesh
 
-    from grasp.obstacles import Obstacles
     from grasp.planner import plan
+    from grasp.search.obstacles import Obstacles
 
     r = request
     mesh = trimesh.Trimesh(r.vertices, r.faces, process=False)
@@ -103,10 +103,10 @@ def plan_grasps(request: PlanRequest) -> tuple[list, float]:
 
 
 def lift_trial(vertices: np.ndarray, faces: np.ndarray, grasp, support_plane, trial):
-    """One verification trial (:func:`grasp.verify.run_trial`) of ``grasp`` on the mesh."""
+    """One verification trial (:func:`grasp.physics.verify.run_trial`) of ``grasp`` on the mesh."""
     import trimesh
 
-    from grasp.verify import run_trial
+    from grasp.physics.verify import run_trial
 
     return run_trial(trimesh.Trimesh(vertices, faces, process=False), grasp, support_plane, trial)
 
@@ -235,10 +235,9 @@ class Planner:
         return result
 
     async def _verified(self, vertices, faces, ranked, n, support_plane, seed) -> list:
-        """:func:`grasp.verify.verify` with each grasp's trials spread over the workers: every
+        """:func:`grasp.ranking.select.verified`, each grasp's trials spread over the workers: every
         trial takes a worker slot of its own, in turn with other requests' plans (fair share)."""
-        from grasp.planner import distinct
-        from grasp.verify import verify
+        from grasp.ranking.select import verified
 
         loop = asyncio.get_running_loop()
 
@@ -249,7 +248,7 @@ class Planner:
             return future.result()
 
         return await anyio.to_thread.run_sync(
-            lambda: verify(None, distinct(ranked), n, support_plane, seed, run=run))
+            lambda: verified(ranked, n, mesh=None, support_plane=support_plane, seed=seed, run=run))
 
     async def _slot(self, call):
         """``call`` in a worker (process or thread) once a worker slot is free."""

@@ -18,9 +18,9 @@ from fastapi import APIRouter, Depends, Header, Path, Query, Request, Response, 
 
 from completion.mesh import MeshFormat, export_mesh
 from completion.stream import stored_registration, stored_support_plane
-from grasp.autograsp import pregrasp_pose
+from grasp.hand.autograsp import pregrasp_pose
+from grasp.hand.table import hand_primitives
 from grasp.planner import palm_touches, too_large
-from grasp.table import hand_primitives
 from grasp_client.wire import JOINT_NAMES, Contact, Grasp, Primitive, SupportPlane
 from service.deps import Services, ServicesDep, require_token
 from service.inputs import InputError

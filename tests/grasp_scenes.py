@@ -98,7 +98,7 @@ def scenes() -> list[Scene]:
 @functools.cache
 def scene_result(name: str):
     """(mesh, GraspResult) of one canonical scene, computed once per test session."""
-    from grasp.autograsp import autograsp
+    from grasp.hand.autograsp import autograsp
 
     scene = {s.name: s for s in scenes()}[name]
     result = autograsp(
@@ -108,7 +108,7 @@ def scene_result(name: str):
 
 
 def summary(result) -> dict:
-    """What a golden records about a :class:`grasp.autograsp.GraspResult`."""
+    """What a golden records about a :class:`grasp.hand.autograsp.GraspResult`."""
     return {
         "joints_deg": [round(float(v), 4) for v in result.joints_deg],
         "dofs_deg": [round(float(v), 4) for v in result.dofs_deg],

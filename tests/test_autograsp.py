@@ -1,4 +1,4 @@
-"""grasp.autograsp: scripted grasp regression tests on canonical scenes.
+"""grasp.hand.autograsp: scripted grasp regression tests on canonical scenes.
 
 Goldens: ``tests/golden/grasps.json``, compared at 0.1°. A failing golden is a behaviour change:
 find out why. Regenerate only on purpose (and say why in the change's note) with::
@@ -35,15 +35,9 @@ from grasp_scenes import (
 from scipy.optimize import brentq
 from scipy.spatial.transform import Rotation
 
-from grasp.autograsp import (
-    GraspResult,
-    autograsp,
-    joint_error_deg,
-    pregrasp_pose,
-    regrasp,
-    with_quality,
-)
-from grasp.collision import CollisionScene
+from grasp.hand.autograsp import autograsp, pregrasp_pose, regrasp, with_quality
+from grasp.hand.collision import CollisionScene
+from grasp.hand.result import GraspResult, joint_error_deg
 from hands.barrett import BH8_282, JOINT_NAMES
 
 SCENES = {scene.name: scene for scene in scenes()}
@@ -432,17 +426,17 @@ def test_bad_input_raises():
 
 def test_grasp_modules_do_not_import_torch():
     code = (
-        "import sys, grasp.autograsp, grasp.planner, grasp.quality, grasp.sim, grasp.render, "
+        "import sys, grasp.hand.autograsp, grasp.planner, grasp.hand.quality, grasp.evaluate.picture, grasp.evaluate.render, "
         "hands.barrett.urdf; assert 'torch' not in sys.modules, 'torch imported'"
     )
     subprocess.run([sys.executable, "-c", code], check=True, cwd=GOLDEN_PATH.parents[2])
 
 
 def test_the_planner_does_not_import_pybullet():
-    """The planner's workers use the fcl scene (grasp.collision); pybullet is for pictures and
-    physics (grasp.sim, grasp.physics)."""
-    code = ("import sys, grasp.planner, grasp.autograsp, grasp.collision, grasp.candidates, "
-            "grasp.quality; assert 'pybullet' not in sys.modules, 'pybullet imported'")
+    """The planner's workers use the fcl scene (grasp.hand.collision); pybullet is for pictures and
+    physics (grasp.evaluate.picture, grasp.physics)."""
+    code = ("import sys, grasp.planner, grasp.hand.autograsp, grasp.hand.collision, grasp.search.candidates, "
+            "grasp.hand.quality; assert 'pybullet' not in sys.modules, 'pybullet imported'")
     subprocess.run([sys.executable, "-c", code], check=True, cwd=GOLDEN_PATH.parents[2])
 
 

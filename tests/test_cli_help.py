@@ -8,8 +8,8 @@ import importlib
 import pytest
 
 CLIS = ["completion.bench", "completion.prior", "completion.data", "completion.train",
-        "grasp.evaluate.cli", "grasp.render", "grasp.physics.cli", "grasp.lift_training",
-        "grasp.planner", "service.__main__", "service.load", "hands.barrett.urdf",
+        "grasp.evaluate.cli", "grasp.evaluate.render", "grasp.cli", "grasp.evaluate.lift_training",
+        "service.__main__", "service.load", "hands.barrett.urdf",
         "grasp.evaluate.sensor_parts"]
 FLAGS = (argparse._StoreTrueAction, argparse._StoreFalseAction, argparse._StoreConstAction,
          argparse._HelpAction, argparse._VersionAction, argparse._SubParsersAction,

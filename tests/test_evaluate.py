@@ -534,10 +534,10 @@ def test_grasp_summary_keeps_a_pose_the_figure_can_re_run():
     rigidity check (this crashed the figures once), so the summary keeps the pose whole."""
     from scipy.spatial.transform import Rotation
 
-    from grasp.autograsp import GraspResult, HandDofs, HandJoints
-    from grasp.collision import check_pose
     from grasp.evaluate.figures import _grasp_result
-    from grasp.metrics import JointError
+    from grasp.evaluate.metrics import JointError
+    from grasp.hand.collision import check_pose
+    from grasp.hand.result import GraspResult, HandDofs, HandJoints
 
     fragile = None
     for seed in range(200):

@@ -12,7 +12,8 @@ import trimesh
 
 from grasp.physics import lift_test
 from grasp.physics.settings import DEFAULT_SETTINGS
-from grasp.planner import HOLD_THRESHOLD, plan
+from grasp.planner import plan
+from grasp.ranking.rank import HOLD_THRESHOLD
 from grasp_client.wire import SupportPlane
 
 FLOOR = SupportPlane(np.array([0.0, 0.0, 1.0]), 0.0)  # the table z = 0
@@ -75,11 +76,11 @@ def test_a_grasp_predicted_to_drop_is_a_failure_that_says_so():
 
 
 def test_the_lift_model_is_what_its_data_and_command_give(tmp_path):
-    """The committed coefficients are `python -m grasp.lift_training train` on the committed data
+    """The committed coefficients are `python -m grasp.evaluate.lift_training train` on the committed data
     (training-split objects only), and the features are the ones it was trained on."""
     from completion.objects import object_ids
-    from grasp.lift_model import DATA_PATH, FEATURES, MODEL_PATH
-    from grasp.lift_training import main
+    from grasp.evaluate.lift_training import main
+    from grasp.ranking.lift_model import DATA_PATH, FEATURES, MODEL_PATH
 
     out = tmp_path / "model.json"
     main(["train", "--data", str(DATA_PATH), "--out", str(out)])

@@ -1,4 +1,4 @@
-"""grasp.render: pictures of the hand on the mesh (pybullet TinyRenderer) and the command line."""
+"""grasp.evaluate.render: pictures of the hand on the mesh (pybullet TinyRenderer) and the command line."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 from grasp_scenes import scene_result
 
-from grasp.render import main, render_grasp
+from grasp.evaluate.render import main, render_grasp
 
 
 @pytest.fixture(scope="module")

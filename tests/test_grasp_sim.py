@@ -1,4 +1,4 @@
-"""grasp.sim and grasp.collision: the pybullet GraspWorld and its fcl mirror CollisionScene agree
+"""grasp.evaluate.picture and grasp.hand.collision: the pybullet GraspWorld and its fcl mirror CollisionScene agree
 with each other."""
 
 from __future__ import annotations
@@ -10,8 +10,8 @@ import trimesh
 from grasp_scenes import box, mug
 from scipy.spatial.transform import Rotation
 
-from grasp.collision import CollisionScene, check_mesh, check_pose
-from grasp.sim import GraspWorld
+from grasp.evaluate.picture import GraspWorld
+from grasp.hand.collision import CollisionScene, check_mesh, check_pose
 from hands.barrett import JOINT_NAMES, HandKinematics
 
 

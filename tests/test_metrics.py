@@ -1,12 +1,12 @@
-"""grasp.metrics: Jaccard, F-score@d (Tatarchenko et al. 2019) and the grasp joint error."""
+"""grasp.evaluate.metrics: Jaccard, F-score@d (Tatarchenko et al. 2019) and the grasp joint error."""
 
 import numpy as np
 import pytest
 import trimesh
 
 from completion.grid import GRID_SHAPE
-from grasp import metrics
-from grasp.metrics import (
+from grasp.evaluate import metrics
+from grasp.evaluate.metrics import (
     FScore,
     SurfaceSample,
     fscore,
@@ -162,7 +162,7 @@ def test_surface_samples_are_seeded():
 
 
 def _needs_planner():
-    pytest.importorskip("grasp.autograsp", reason="grasp.autograsp is not written yet")
+    pytest.importorskip("grasp.hand.autograsp", reason="grasp.hand.autograsp is not written yet")
     pytest.importorskip("grasp.planner", reason="grasp.planner is not written yet")
 
 

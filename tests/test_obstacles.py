@@ -1,4 +1,4 @@
-"""Neighbours as obstacles (grasp.obstacles, issue 61): voxels the hand keeps clear of while it
+"""Neighbours as obstacles (grasp.search.obstacles, issue 61): voxels the hand keeps clear of while it
 approaches and closes, the planner refusing grasps that would touch them, and the lift test
 with the neighbours as dynamic bodies on the table."""
 
@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 import trimesh
 
-from grasp.obstacles import Obstacles, sweep_hit
 from grasp.physics import lift_test
 from grasp.planner import plan
+from grasp.search.obstacles import Obstacles, sweep_hit
 from grasp_client.wire import SupportPlane
 
 TABLE = SupportPlane([0.0, 0.0, 1.0], 0.0)
@@ -111,7 +111,7 @@ def test_a_target_boxed_in_gets_no_grasp_and_the_reason_names_the_obstacles(targ
 
 
 def test_a_preshaped_hand_approaches_with_its_fingers_half_closed_and_closes_from_there(target):
-    from grasp.autograsp import autograsp
+    from grasp.hand.autograsp import autograsp
 
     down = np.eye(4)
     down[:3, :3] = [[1, 0, 0], [0, -1, 0], [0, 0, -1]]  # palm +z pointing down
@@ -129,9 +129,9 @@ def test_among_neighbours_the_planner_preshapes_the_hand_where_the_open_one_woul
     grasp is clear of them (the planner's best open-hand grasps touch one); the top grasp
     approaches with the fingers at 45°, holds, and leaves the neighbours standing (the lift
     test executes the pre-shape)."""
-    from grasp.autograsp import pregrasp_pose
     from grasp.evaluate.clutter_scenes import scene_objects
-    from grasp.planner import CLUTTER_PRESHAPE_DEG
+    from grasp.hand.autograsp import pregrasp_pose
+    from grasp.search.loop import CLUTTER_PRESHAPE_DEG
 
     _, target, _, neighbours, _, _ = scene_objects(4, 0)
     obstacles = Obstacles.from_meshes(neighbours)
@@ -152,8 +152,8 @@ def test_the_batched_pregrasp_check_agrees_with_the_sweep_of_a_hand_standing_sti
                                                                                    neighbour):
     """:func:`hand_clear` (every candidate at once, what the planner checks its pre-grasps with)
     gives what :func:`sweep_hit` gives for a hand that does not move, open and pre-shaped."""
-    from grasp.candidates import table_candidates
-    from grasp.obstacles import hand_clear
+    from grasp.search.candidates import table_candidates
+    from grasp.search.obstacles import hand_clear
     from hands.barrett.kinematics import joints_from_dofs
 
     obstacles = Obstacles.from_meshes([neighbour, standing_box((0.05, 0.2, 0.1), (-0.1, 0.0))])

@@ -12,7 +12,7 @@ import pybullet
 import pytest
 import trimesh
 
-from grasp.autograsp import autograsp
+from grasp.hand.autograsp import autograsp
 from grasp.physics import (
     HOLD_TOLERANCE_M,
     DynamicWorld,

@@ -1,4 +1,4 @@
-"""The table pinch (:mod:`grasp.pinch`): a flat object is picked with the fingertips sliding in
+"""The table pinch (:mod:`grasp.hand.pinch`): a flat object is picked with the fingertips sliding in
 along the table while the wrist rises; planned by the autograsp, executed by the lift test, on
 the wire."""
 
@@ -10,12 +10,12 @@ import numpy as np
 import pytest
 import trimesh
 
-from grasp.autograsp import autograsp
-from grasp.candidates import table_candidates
+from grasp.hand.autograsp import autograsp
+from grasp.hand.pinch import TABLE_PINCH, TIP_CLEARANCE_M, depth, pinch_height, profile, rise
+from grasp.hand.table import hand_clearance
 from grasp.physics import lift_test
-from grasp.pinch import TABLE_PINCH, TIP_CLEARANCE_M, depth, pinch_height, profile, rise
 from grasp.planner import plan
-from grasp.table import hand_clearance
+from grasp.search.candidates import table_candidates
 from grasp_client.wire import Grasp, SupportPlane, WristRise
 from hands.barrett import JOINT_NAMES, HandKinematics
 

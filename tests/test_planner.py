@@ -8,21 +8,14 @@ import trimesh
 from grasp_scenes import box
 from scipy.spatial.transform import Rotation
 
-from grasp.autograsp import autograsp
-from grasp.candidates import STANDOFF_M, candidate_poses, principal_axes
-from grasp.collision import CollisionScene
-from grasp.planner import (
-    AUTOGRASP_BUDGET,
-    DISTINCT_DEG,
-    DISTINCT_M,
-    SCREEN_SPACING_M,
-    depth_of,
-    distinct,
-    palm_touches,
-    plan,
-    rank_key,
-)
-from grasp.table import crosses, hand_clearance, hand_points
+from grasp.defaults import AUTOGRASP_BUDGET
+from grasp.hand.autograsp import autograsp
+from grasp.hand.collision import CollisionScene
+from grasp.hand.table import crosses, hand_clearance, hand_points
+from grasp.planner import plan
+from grasp.ranking.rank import DISTINCT_DEG, DISTINCT_M, depth_of, distinct, palm_touches, rank_key
+from grasp.search.candidates import STANDOFF_M, candidate_poses, principal_axes
+from grasp.search.loop import SCREEN_SPACING_M
 from grasp_client.wire import SupportPlane
 
 
@@ -157,7 +150,7 @@ def test_the_top_grasp_does_not_depend_on_top_k(table):
 
 
 def test_screen_predicts_where_the_approach_stops_and_what_touches(brick):
-    from grasp.screen import Screen
+    from grasp.search.screen import Screen
 
     scene = CollisionScene(brick)
     candidates = candidate_poses(brick, n_candidates=32, seed=0)
@@ -252,8 +245,8 @@ def test_fast_screen_agrees_with_the_exact_check_on_free_poses(object_id):
     fcl check agree on whether the open hand is clear; where they differ, the hand is within
     about a voxel of touching, and the screen never calls a colliding pose free."""
     from completion.objects import load_object
-    from grasp.candidates import _random_rotation
-    from grasp.screen import Screen
+    from grasp.search.candidates import _random_rotation
+    from grasp.search.screen import Screen
 
     mesh = load_object(object_id)
     screen = Screen(mesh)
@@ -279,7 +272,7 @@ def test_fast_screen_agrees_with_the_exact_check_on_free_poses(object_id):
 
 
 def test_fast_approach_stops_at_the_exact_contact():
-    from grasp.screen import Screen
+    from grasp.search.screen import Screen
 
     cube = trimesh.creation.box(extents=(0.06, 0.06, 0.06))
     screen = Screen(cube)

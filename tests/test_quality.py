@@ -1,11 +1,11 @@
-"""grasp.quality: friction cones, wrenches, the L1 grasp wrench space, epsilon and volume."""
+"""grasp.hand.quality: friction cones, wrenches, the L1 grasp wrench space, epsilon and volume."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from grasp.quality import (
+from grasp.hand.quality import (
     EPSILON_NO_CLOSURE,
     FRICTION_EDGES,
     MU_RUBBER,

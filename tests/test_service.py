@@ -157,8 +157,8 @@ def test_grasp(client, scene):
 def test_grasp_on_a_support_plane(client, scene):
     """The table under the object (world z of its lowest point): no grasp from below it, no
     hand link below it, in the world frame the plane was given in."""
-    from grasp.autograsp import GraspResult, HandDofs, HandJoints
-    from grasp.table import hand_points
+    from grasp.hand.result import GraspResult, HandDofs, HandJoints
+    from grasp.hand.table import hand_points
     from grasp_client.wire import SupportPlane
 
     bodies = scene_views(scene)[:2]

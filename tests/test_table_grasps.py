@@ -17,13 +17,13 @@ import trimesh
 from scipy.optimize import brentq
 from scipy.spatial.transform import Rotation
 
-from grasp.autograsp import autograsp
-from grasp.candidates import TABLE_CLEARANCE_M, table_candidates
-from grasp.collision import CollisionScene
-from grasp.pinch import pinch_height
+from grasp.hand.autograsp import autograsp
+from grasp.hand.collision import CollisionScene
+from grasp.hand.pinch import pinch_height
+from grasp.hand.table import TABLE_TOL_M, hand_clearance, hand_primitives
 from grasp.planner import plan
-from grasp.screen import Screen, finger_reach, open_hand_lowest
-from grasp.table import TABLE_TOL_M, hand_clearance, hand_primitives
+from grasp.search.candidates import TABLE_CLEARANCE_M, table_candidates
+from grasp.search.screen import Screen, finger_reach, open_hand_lowest
 from grasp_client.wire import SupportPlane
 
 FLOOR = SupportPlane(np.array([0.0, 0.0, 1.0]), 0.0)  # the table z = 0

@@ -1,4 +1,4 @@
-"""Grasps tried in physics before they are returned (grasp/verify.py, plan(..., verify=N)), the lift
+"""Grasps tried in physics before they are returned (grasp/physics/verify.py, plan(..., verify=N)), the lift
 test standing on a support plane in any frame, and verification through the real service."""
 
 from __future__ import annotations
@@ -11,10 +11,10 @@ import numpy as np
 import pytest
 import trimesh
 
-from grasp import verify as V
+from grasp.hand.table import to_upright
 from grasp.physics import lift_test
+from grasp.physics import verify as V
 from grasp.planner import plan
-from grasp.table import to_upright
 from grasp_client.wire import SupportPlane
 
 GOLDEN = Path(__file__).parent / "golden" / "plan_unverified.json"
@@ -58,7 +58,7 @@ def test_trials_are_seeded_and_within_their_ranges():
 
 
 def test_order_puts_held_grasps_first_then_untried_successes_then_drops():
-    from grasp.autograsp import GraspResult, HandDofs, HandJoints
+    from grasp.hand.result import GraspResult, HandDofs, HandJoints
 
     def grasp(success: bool, name: str) -> GraspResult:
         return GraspResult(success, name, np.eye(4), HandJoints(*[0.0] * 8), HandDofs(*[0.0] * 4),

@@ -68,7 +68,7 @@ ROW_SOURCES = {
     "mvp_4views_verified": ("mvp", 4),
 }
 #: The rows whose grasps are tried in physics on the mesh they were planned on before the top
-#: one is chosen (``plan(..., verify=N)``, :mod:`grasp.verify`).
+#: one is chosen (``plan(..., verify=N)``, :mod:`grasp.physics.verify`).
 VERIFIED_ROWS = tuple(row for row in BENCHMARK_ROWS if row.endswith("_verified"))
 VIEWS = 4
 #: Azimuth between the benchmark's views (the training pans turn 30° a view; 4 views 90° apart
@@ -185,10 +185,10 @@ def completion_mesh(scene: Scene, source: str, views: int, models: dict):
 
 
 def grasp_kind(grasp, up: np.ndarray = TABLE_PLANE.normal) -> str:
-    """"table pinch" (:mod:`grasp.pinch`), or "power" (the palm touches) or "fingertip", "from
+    """"table pinch" (:mod:`grasp.hand.pinch`), or "power" (the palm touches) or "fingertip", "from
     above" (within 45° of straight down) or "from the side"."""
-    from grasp.pinch import TABLE_PINCH
-    from grasp.planner import palm_touches
+    from grasp.hand.pinch import TABLE_PINCH
+    from grasp.ranking.rank import palm_touches
 
     if grasp.kind == TABLE_PINCH:
         return TABLE_PINCH
@@ -250,7 +250,7 @@ def run_object(scene: Scene, models: dict, rows, *, candidates: int, seed: int,
 def object_record(object_id: str, mesh: trimesh.Trimesh, rows: dict[str, dict]) -> dict:
     """results.json's ``grasp_benchmark_objects`` entry: the object, its size (m, the extents
     of its box on the table), its mass (kg, at the lift test's density) and its rows."""
-    from grasp.lift_model import estimated_mass
+    from grasp.ranking.lift_model import estimated_mass
 
     return {"id": object_id, "size_m": np.round(mesh.extents, 4).tolist(),
             "mass_kg": round(estimated_mass(mesh), 4), "rows": rows}

@@ -34,7 +34,7 @@ from completion import grid as G
 from completion.objects import load_object
 from completion.scenes import TABLE_PLANE
 from grasp.evaluate.benchmark_scenes import VIEWS, benchmark_objects, grasp_kind, render_pan
-from grasp.obstacles import Obstacles, seen_others
+from grasp.search.obstacles import Obstacles, seen_others
 
 CLUTTER_ROWS: tuple[str, ...] = ("true_meshes", "mvp_4views_obstacles", "mvp_4views_ignoring")
 #: Neighbours per scene (inclusive), and the gap (m) between each one's footprint and the
@@ -190,7 +190,7 @@ def clutter_scene(index: int, seed: int, renderer) -> ClutterScene:
 def seen_obstacles(scene: ClutterScene, views: int = VIEWS) -> Obstacles:
     """Every pixel of the first ``views`` views outside the target's mask with a depth,
     back-projected to the world and kept as the service keeps a view's other pixels
-    (:func:`grasp.obstacles.seen_others`: off the table, near the target, not its rim)."""
+    (:func:`grasp.search.obstacles.seen_others`: off the table, near the target, not its rim)."""
     kept = []
     for t in range(views):
         outside = ~scene.mask[t]

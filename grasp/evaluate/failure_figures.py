@@ -23,8 +23,8 @@ def failures_figure(raw, out: Path, plt, table: str, row: str, scene, title, hea
     (``r.record["rows"][row]``)."""
     import textwrap
 
-    from grasp.autograsp import GraspResult, HandDofs, HandJoints
-    from grasp.render import render_grasp
+    from grasp.evaluate.render import render_grasp
+    from grasp.hand.result import GraspResult, HandDofs, HandJoints
 
     failed = [r for r in raw if r.job.table == table and "palm_pose" in r.record.get(
         "rows", {}).get(row, {}) and not r.record["rows"][row][key]]

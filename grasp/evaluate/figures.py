@@ -127,7 +127,7 @@ GRASP_FIGURE_EXAMPLES = 3
 
 def _grasp_result(summary: dict):
     """A ``GraspResult`` carrying the pose and joints of a JSON grasp summary (for rendering)."""
-    from grasp.autograsp import GraspResult, HandDofs, HandJoints
+    from grasp.hand.result import GraspResult, HandDofs, HandJoints
 
     joints = HandJoints(*summary["joints_deg"])
     return GraspResult(
@@ -142,10 +142,10 @@ def _grasp_result(summary: dict):
 def _grasp_figure(raw: list[SequenceResult], out: Path, plt) -> Path | None:
     """grasps.png: per example, the grasp on the prediction and the re-grasp on the truth.
 
-    Rendered with :func:`grasp.render.render_grasp` (pybullet TinyRenderer, side view).
+    Rendered with :func:`grasp.evaluate.render.render_grasp` (pybullet TinyRenderer, side view).
     """
-    from grasp import metrics
-    from grasp.render import render_grasp
+    from grasp.evaluate import metrics
+    from grasp.evaluate.render import render_grasp
 
     shown = [r for r in raw if r.example is not None and r.grasps][:GRASP_FIGURE_EXAMPLES]
     if not shown:

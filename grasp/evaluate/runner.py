@@ -115,7 +115,7 @@ class Evaluator:
 
     def _score_views(self, job: Job, seq: Sequence, probs: dict, thresholds: dict):
         """row -> metric -> per view; and the target's own scores (the ceiling)."""
-        from grasp import metrics
+        from grasp.evaluate import metrics
 
         s = self.settings
         per_view = {row: {"jaccard": [], "fscore_1": [], "fscore_2": []} for row in s.rows}
@@ -157,8 +157,8 @@ class Evaluator:
         alone, whatever the condition: the tabletop's table is not given to the planner, the
         re-grasps or the lift test (the paper's protocol, so that the conditions compare; the
         benchmark and the clutter table grasp on a table; results.md says so)."""
-        from grasp import metrics
-        from grasp.collision import CollisionScene
+        from grasp.evaluate import metrics
+        from grasp.hand.collision import CollisionScene
 
         grasps: dict[str, dict] = {}
         physics: dict[str, dict] = {}

@@ -14,7 +14,7 @@ import trimesh
 from scipy.spatial import ConvexHull, HalfspaceIntersection, QhullError
 
 from completion.bullet import direct_client, quiet_fds
-from grasp.collision import check_mesh
+from grasp.hand.collision import check_mesh
 from grasp.physics.settings import DENSITY_KG_M3, VHACD_OPTIONS
 
 log = logging.getLogger(__name__)

@@ -11,8 +11,11 @@ import numpy as np
 import trimesh
 from scipy.spatial.transform import Rotation
 
-from grasp.autograsp import GraspResult, pregrasp_pose
-from grasp.collision import check_mesh, check_pose
+from grasp.hand.autograsp import pregrasp_pose
+from grasp.hand.collision import check_mesh, check_pose
+from grasp.hand.quality import MU_RUBBER
+from grasp.hand.result import GraspResult
+from grasp.hand.table import to_upright
 from grasp.physics.settings import (
     APPROACHES,
     DEFAULT_SETTINGS,
@@ -23,8 +26,6 @@ from grasp.physics.settings import (
     LiftSettings,
 )
 from grasp.physics.world import DynamicWorld
-from grasp.quality import MU_RUBBER
-from grasp.table import to_upright
 from grasp_client.wire import SupportPlane
 from hands.barrett import BH8_282, BarrettParams
 from hands.barrett.kinematics import joints_from_dofs
@@ -93,7 +94,7 @@ def lift_test(
     mesh : trimesh.Trimesh
         The true object in world coordinates (metres), the frame of ``grasp.palm_pose``.
     grasp : GraspResult
-        A planned grasp (:func:`grasp.autograsp.autograsp`, :func:`grasp.planner.plan`). Its palm
+        A planned grasp (:func:`grasp.hand.autograsp.autograsp`, :func:`grasp.planner.plan`). Its palm
         pose and spread are used; the finger joints come from the simulated closing.
     seed : int
         Seeds the shake directions. The same inputs and seed give the same result.
@@ -233,7 +234,7 @@ class _Hand:
         opened = joints_from_dofs([self.spread, *[grasp.preshape_deg] * 3], params=params)
         self.backoff = pregrasp_pose(palm, s.pregrasp_backoff)[:3, 3] - palm[:3, 3]  # (3,)
         world.place_hand(palm, opened.tolist(), offset=self.backoff)
-        self.fingers = world.fingers(grasp.preshape_deg)
+        self.fingers = world.controller.fingers(grasp.preshape_deg)
         self.offset = self.backoff  # the palm's offset from the planned pose (world)
         self.carriage = self.backoff  # and where it was when the fingers stopped
 
@@ -251,8 +252,8 @@ class _Hand:
             path = [self.backoff + reach * (i / n) * palm[:3, 2] for i in range(1, n + 1)]
         for offset in path:
             world.move_hand(offset)
-            world.hold_spread(self.spread)
-            world.hold_fingers_open(self.fingers)
+            world.controller.hold_spread(self.spread)
+            world.controller.hold_open(self.fingers)
             world.step()
             if guarded and world.touches():
                 offset = world.hand_offset()  # stop where the hand is (it trails its target)
@@ -263,7 +264,7 @@ class _Hand:
 
     def close(self) -> _Closed:
         """Drive the fingers until each stops and they settle (a table pinch's palm rising with
-        the closing fingers' DOF, :mod:`grasp.pinch`), at most ``close_timeout``."""
+        the closing fingers' DOF, :mod:`grasp.hand.pinch`), at most ``close_timeout``."""
         s, world = self.s, self.world
         rising, up = self.grasp.wrist_rise, -self.palm[:3, 2]
         steps, settle_left = 0, round(s.close_settle / s.time_step)
@@ -272,8 +273,8 @@ class _Hand:
                 self.carriage = self.offset + max(rising.at(q)
                                                   for q in world.finger_dofs_deg()) * up
                 world.move_hand(self.carriage)
-            world.hold_spread(self.spread)
-            world.drive_fingers(self.fingers)
+            world.controller.hold_spread(self.spread)
+            world.controller.drive(self.fingers)
             world.step()
             steps += 1
             if all(f.done for f in self.fingers):
@@ -291,8 +292,8 @@ class _Hand:
         for name, n_steps, target in schedule:
             for i in range(n_steps):
                 world.move_hand(self.carriage + target((i + 1) * s.time_step))
-                world.hold_spread(self.spread)
-                world.drive_fingers(self.fingers)
+                world.controller.hold_spread(self.spread)
+                world.controller.drive(self.fingers)
                 world.step()
                 held.elapsed += s.time_step
                 held.position, held.rotation = world.object_in_palm()

@@ -1,7 +1,7 @@
 """BarrettHand kinematics from :class:`BarrettParams`: joints, links, collision shapes, coupling.
 
 This module is the single description of the hand's structure. The URDF
-(:mod:`hands.barrett.urdf`) and the collision model used by autograsp (:mod:`grasp.collision`)
+(:mod:`hands.barrett.urdf`) and the collision model used by autograsp (:mod:`grasp.hand.collision`)
 are both built from :class:`HandKinematics`, so the two cannot drift apart (a test loads the URDF
 in pybullet and compares its link frames with :meth:`HandKinematics.link_poses`).
 

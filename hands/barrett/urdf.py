@@ -7,7 +7,7 @@ checks that they agree. Regenerate it on purpose with::
 
 Coupling that URDF cannot state: the spread of finger 2 mirrors finger 1 (written as a ``<mimic>``
 tag, which pybullet ignores), and J3 = DOF/3 with the breakaway clutch, which lives in
-:func:`hands.barrett.kinematics.joints_from_dofs` and in :mod:`grasp.autograsp`.
+:func:`hands.barrett.kinematics.joints_from_dofs` and in :mod:`grasp.hand.autograsp`.
 """
 
 from __future__ import annotations

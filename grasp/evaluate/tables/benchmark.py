@@ -15,7 +15,7 @@ from grasp.evaluate.config import FUSION, GRASP_SUCCESS, Job, Settings
 from grasp.evaluate.failure_figures import failures_figure
 from grasp.evaluate.sequence_result import SequenceResult, StageClock, Timings, key_seed
 from grasp.evaluate.tables.base import Option, Table, rows_record
-from grasp.verify import DEFAULT_VERIFY
+from grasp.physics.verify import DEFAULT_VERIFY
 
 LABELS = {
     "true_mesh": "True mesh (planned on the truth)",
@@ -160,9 +160,9 @@ class BenchmarkTable(Table):
 
 
 def _flat(records: list[dict]) -> list[str]:
-    """The objects lower than a table pinch's palm (:func:`grasp.pinch.pinch_height`), planned on
+    """The objects lower than a table pinch's palm (:func:`grasp.hand.pinch.pinch_height`), planned on
     the true mesh: which held, with which grasp, and why the others did not."""
-    from grasp.pinch import pinch_height
+    from grasp.hand.pinch import pinch_height
 
     low = [r for r in records if r["size_m"][2] < pinch_height() and "true_mesh" in r["rows"]]
     if not low:

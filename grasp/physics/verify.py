@@ -34,7 +34,8 @@ from dataclasses import dataclass
 import numpy as np
 import trimesh
 
-from grasp.autograsp import GraspResult
+from grasp.hand.result import GraspResult
+from grasp.physics.settings import DENSITY_KG_M3
 from grasp_client.wire import SupportPlane, Verification
 
 #: Lift trials per verified grasp (chosen on training-split objects: docs/grasping.md).
@@ -46,13 +47,13 @@ class VerifySettings:
     """How a planned grasp is tried (every range is closed; SI units).
 
     ``density``: kg/m³ of the planned mesh (the planner does not know the true mass; the lift
-    test's and the lift model's 500). Each trial multiplies it by a factor drawn log-uniformly
+    test's and the lift model's :data:`grasp.physics.settings.DENSITY_KG_M3`). Each trial multiplies it by a factor drawn log-uniformly
     from ``mass_factor`` and draws the hand–object friction μ uniformly from ``friction``; its
     shake directions come from a seed of the trial's own stream.
     """
 
     trials: int = TRIALS
-    density: float = 500.0
+    density: float = DENSITY_KG_M3
     mass_factor: tuple[float, float] = (0.8, 1.25)
     friction: tuple[float, float] = (0.8, 1.0)
 
@@ -94,7 +95,7 @@ NOT_TRIED = Verification(tried=False)
 def trials(seed: int, settings: VerifySettings = DEFAULT_VERIFY) -> list[Trial]:
     """The ``settings.trials`` perturbed trials of a plan with ``seed`` (every grasp of the plan
     faces the same ones), drawn from a stream of their own."""
-    rng = np.random.default_rng([seed, zlib.crc32(b"grasp/verify")])
+    rng = np.random.default_rng([seed, zlib.crc32(b"grasp/physics/verify")])
     lo, hi = np.log(settings.mass_factor)
     out = []
     for index in range(settings.trials):

@@ -23,9 +23,9 @@ from dataclasses import dataclass
 import numpy as np
 import trimesh
 
-from grasp.collision import check_mesh, fibonacci_directions
-from grasp.pinch import TABLE_PINCH, TIP_CLEARANCE_M, pinch_height
-from grasp.screen import finger_reach, open_hand_lowest
+from grasp.hand.collision import check_mesh, fibonacci_directions
+from grasp.hand.pinch import TABLE_PINCH, TIP_CLEARANCE_M, pinch_height
+from grasp.search.screen import finger_reach, open_hand_lowest
 from grasp_client.wire import SupportPlane
 
 #: Spreads (degrees) the random candidates draw from: parallel fingers, tripod, T, and between.
@@ -46,9 +46,9 @@ class Candidate:
     palm_pose: np.ndarray
     spread_deg: float
     source: str  # "principal", "sphere", or with a support plane "top", "pinch" (fingertips,
-    # the palm still) or "table pinch" (the palm rising, grasp.pinch)
+    # the palm still) or "table pinch" (the palm rising, grasp.hand.pinch)
     travel: float | None = None  # longest approach (metres); None: the planner's
-    preshape_deg: float = 0.0  # the fingers' DOF on the way in (0: open; grasp.obstacles)
+    preshape_deg: float = 0.0  # the fingers' DOF on the way in (0: open; grasp.search.obstacles)
 
 
 def principal_axes(mesh: trimesh.Trimesh) -> np.ndarray:
@@ -150,9 +150,9 @@ def table_candidates(
 ) -> list[Candidate]:
     """``n_candidates`` pre-grasp poses around ``mesh`` resting on ``plane``: top-down ones
     (palm +z against the normal, fingers across each axis of the footprint, spreads 0° and 60°);
-    for an object lower than the palm of a table pinch (:func:`grasp.pinch.pinch_height`), table
+    for an object lower than the palm of a table pinch (:func:`grasp.hand.pinch.pinch_height`), table
     pinches (the same, the approach ending with the open hand's lowest point
-    :data:`grasp.pinch.TIP_CLEARANCE_M` above the table); for an object lower than the fingers'
+    :data:`grasp.hand.pinch.TIP_CLEARANCE_M` above the table); for an object lower than the fingers'
     reach, fingertip ones (the same, the approach ending where the closing tips sweep just over
     the table); then :func:`candidate_poses`'s that do
     not approach from below. Every open hand starts clear of the table (:func:`_clear_of_table`;
@@ -165,7 +165,7 @@ def table_candidates(
     axes = _footprint_axes(mesh, plane)[::-1]  # across the narrow side first
     tops = [(_palm_pose(-plane.normal, a, center, distance), s) for a in axes for s in (0.0, 60.0)]
     out = [Candidate(pose, spread, "top") for pose, spread in tops]
-    if plane.height(mesh.vertices).max() < pinch_height():  # table pinches (grasp.pinch)
+    if plane.height(mesh.vertices).max() < pinch_height():  # table pinches (grasp.hand.pinch)
         palms = np.stack([pose for pose, _ in tops])
         reach = open_hand_lowest(plane, palms, np.array([s for _, s in tops])) - TIP_CLEARANCE_M
         out += [Candidate(pose, spread, TABLE_PINCH, float(travel))

@@ -224,7 +224,7 @@ def contacts_quality(
     contacts: Sequence, *, center: np.ndarray, max_radius: float, mu: float = MU_RUBBER
 ) -> GraspQuality:
     """:func:`grasp_quality` of records with ``.point`` and ``.normal``
-    (``grasp.collision.Contact``)."""
+    (``grasp.hand.collision.Contact``)."""
     if not contacts:
         return GraspQuality(EPSILON_NO_CLOSURE, 0.0)
     return wrench_space_quality(

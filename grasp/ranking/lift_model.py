@@ -10,10 +10,10 @@ times the hand's grip), the grasp's kind (power or fingertip; from above or the 
 pinch), its
 contacts' heights against the centre of mass, the fingers that touch. A logistic regression on
 those (scikit-learn, standardised features) gives :func:`hold_probability`; its coefficients
-live in ``grasp/lift_model.json`` and are applied here with numpy, so planning needs no
+live in ``grasp/ranking/lift_model.json`` and are applied here with numpy, so planning needs no
 scikit-learn.
 
-Its data and training: :mod:`grasp.lift_training` (``python -m grasp.lift_training collect``,
+Its data and training: :mod:`grasp.evaluate.lift_training` (``python -m grasp.evaluate.lift_training collect``,
 ``train``).
 """
 
@@ -26,8 +26,8 @@ from pathlib import Path
 
 import numpy as np
 
+from grasp.hand.pinch import TABLE_PINCH
 from grasp.physics.settings import DENSITY_KG_M3
-from grasp.pinch import TABLE_PINCH
 from grasp_client.wire import SupportPlane
 
 MODEL_PATH = Path(__file__).with_name("lift_model.json")
@@ -51,7 +51,7 @@ FEATURES: tuple[str, ...] = (
     "mean_contact",  # mean contact height above the centre of mass (m)
     "size",  # the object's largest extent (m)
     "depth",  # centre of mass beyond the palm along the approach (m)
-    "table_pinch",  # 1: a table pinch (grasp.pinch), the palm rising while the fingers close
+    "table_pinch",  # 1: a table pinch (grasp.hand.pinch), the palm rising while the fingers close
 )
 
 

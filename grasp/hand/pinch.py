@@ -42,7 +42,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from grasp.closing import ANGLE_TOL_RAD, Search, close_finger, shift, speed_bounds
+from grasp.hand.closing import ANGLE_TOL_RAD, Search, close_finger, shift, speed_bounds
 from grasp_client.wire import SupportPlane, WristRise
 from hands.barrett import BH8_282, FINGERS, BarrettParams, HandKinematics
 
@@ -67,7 +67,7 @@ def faces_table(palm_pose: np.ndarray, plane: SupportPlane) -> bool:
 
 def pinch_height(params: BarrettParams = BH8_282) -> float:
     """Height (m) of the palm face above the table where a table pinch starts closing: objects
-    lower than this get table pinch candidates (:func:`grasp.candidates.table_candidates`)."""
+    lower than this get table pinch candidates (:func:`grasp.search.candidates.table_candidates`)."""
     return depth(0.0, params) + TIP_CLEARANCE_M
 
 

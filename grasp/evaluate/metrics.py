@@ -351,12 +351,12 @@ def grasp_joint_error(
 
     prediction : the completed mesh (None when the completion is empty)
     truth : the ground-truth object mesh in the same frame (a ``trimesh.Trimesh``, or a
-        :class:`grasp.collision.CollisionScene` built once and reused for several predictions)
+        :class:`grasp.hand.collision.CollisionScene` built once and reused for several predictions)
 
     Plan on the prediction (:func:`grasp.planner.plan`, ``n_candidates`` seeded candidates) and
     take the best grasp's palm orientation, approach line and spread. From its pre-grasp pose
     (backed off ``backoff`` metres along the approach axis, hand open) approach and autograsp
-    the truth (:func:`grasp.autograsp.regrasp`), and, with the very same protocol, the prediction.
+    the truth (:func:`grasp.hand.autograsp.regrasp`), and, with the very same protocol, the prediction.
     Grasping both sides from the same pre-grasp pose makes the error exactly 0 for identical
     shapes and leaves only the geometric difference; the planned grasp itself is what the
     re-grasp on the prediction reproduces whenever the approach line is clear. The planner ranks
@@ -366,8 +366,9 @@ def grasp_joint_error(
     """
     if prediction is None:
         return JointError(None, reason="empty completion: no surface to plan on")
-    from grasp.autograsp import PREGRASP_BACKOFF_M, joint_error_deg, regrasp
-    from grasp.collision import CollisionScene, check_mesh
+    from grasp.hand.autograsp import PREGRASP_BACKOFF_M, regrasp
+    from grasp.hand.collision import CollisionScene, check_mesh
+    from grasp.hand.result import joint_error_deg
     from grasp.planner import plan
 
     back = PREGRASP_BACKOFF_M if backoff is None else float(backoff)

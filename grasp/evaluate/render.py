@@ -1,11 +1,11 @@
 """Pictures of a grasp: the BarrettHand on the mesh from two viewpoints (pybullet TinyRenderer).
 
-    python -m grasp.render MESH --out grasp.png [--candidates 64] [--seed 0]
+    python -m grasp.evaluate.render MESH --out grasp.png [--candidates 64] [--seed 0]
 
 plans a grasp on the mesh file (any format trimesh reads; units are metres) and saves a PNG with
 two views: from the side, across the fingers' closing plane, and from above the object looking
 back at the palm. Library use: :func:`render_grasp` returns the images, :func:`save_grasp_figure`
-writes the PNG for a given :class:`grasp.autograsp.GraspResult`.
+writes the PNG for a given :class:`grasp.hand.autograsp.GraspResult`.
 """
 
 from __future__ import annotations
@@ -19,9 +19,9 @@ import trimesh
 
 from completion.bullet import pybullet
 from completion.cli import HelpWithDefaults
-from grasp.autograsp import GraspResult
-from grasp.collision import check_mesh
-from grasp.sim import GraspWorld
+from grasp.evaluate.picture import GraspWorld
+from grasp.hand.collision import check_mesh
+from grasp.hand.result import GraspResult
 
 #: Field of view (degrees) of the picture cameras.
 FOV_DEG = 40.0
@@ -126,7 +126,7 @@ def save_grasp_figure(
 
 def main(argv: Sequence[str] | None = None) -> None:
     parser = argparse.ArgumentParser(formatter_class=HelpWithDefaults,
-        prog="python -m grasp.render",
+        prog="python -m grasp.evaluate.render",
         description="Plan a BarrettHand grasp on a mesh file and save a picture of it.",
     )
     parser.add_argument(
@@ -138,7 +138,8 @@ def main(argv: Sequence[str] | None = None) -> None:
     parser.add_argument("--scale", type=float, default=1.0, help="multiply the mesh by this")
     args = parser.parse_args(argv)
 
-    from grasp.planner import plan, read_mesh_argument
+    from grasp.cli import read_mesh_argument
+    from grasp.planner import plan
 
     mesh = read_mesh_argument(parser, args.mesh, scale=args.scale)
     best = plan(mesh, n_candidates=args.candidates, seed=args.seed, top_k=1)[0]

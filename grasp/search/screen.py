@@ -15,7 +15,7 @@ lower bound. The hand is a cloud of points on its collision primitives' surfaces
 
 It is approximate near contact: a point cloud and a voxel grid stand for the exact shapes, so
 it agrees with the exact fcl check except within about a voxel of touching (the tests measure
-how often). The planner uses a coarse cloud (``grasp.planner.SCREEN_SPACING_M``, 20 mm: 430
+how often). The planner uses a coarse cloud (``grasp.search.loop.SCREEN_SPACING_M``, 20 mm: 430
 points) and nearest-voxel lookups: 64 candidates are screened in about 25 ms on this 2-core
 machine, where their exact autograsps take about 0.9 s (``python -m grasp.planner`` prints the
 stages; ``--exact 0`` autograsps all).

@@ -14,7 +14,7 @@ The object is a triangle soup, as in GraspIt! and pybullet's concave meshes: a l
 inside a closed mesh without crossing its surface is not "in collision"; autograsp's steps are
 small enough that a link cannot jump inside. This is the planner's hot path and imports no
 pybullet: the pybullet world of the same object and hand (pictures, physics, a cross-check) is
-:mod:`grasp.sim`.
+:mod:`grasp.evaluate.picture`.
 """
 
 from __future__ import annotations

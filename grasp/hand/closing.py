@@ -1,10 +1,10 @@
-"""The search under the autograsp (:mod:`grasp.autograsp`, :mod:`grasp.pinch`): where moving links
+"""The search under the autograsp (:mod:`grasp.hand.autograsp`, :mod:`grasp.hand.pinch`): where moving links
 first touch the object or the table along a 1-D motion, the approach along the palm's +z, and one
 finger's closing by the Barrett rules (coupled, then breakaway).
 
 :class:`Search` steps a motion parameter and bisects the last step to the first contact; a
 convex polytope around the object bounds the distance to it, so far from it the steps are as long
-as no link can reach it (:mod:`grasp.autograsp` explains the speed-up and the tolerances).
+as no link can reach it (:mod:`grasp.hand.autograsp` explains the speed-up and the tolerances).
 
 This module must not import torch (docs/design.md §2).
 """
@@ -16,7 +16,7 @@ from collections.abc import Callable
 
 import numpy as np
 
-from grasp.collision import CollisionScene
+from grasp.hand.collision import CollisionScene
 from hands.barrett.kinematics import rotation_about
 
 #: Bisection tolerances: approach (metres) and finger DOF (radians).

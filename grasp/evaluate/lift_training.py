@@ -1,10 +1,10 @@
-"""The lift model's data and training (:mod:`grasp.lift_model` applies it).
+"""The lift model's data and training (:mod:`grasp.ranking.lift_model` applies it).
 
-``python -m grasp.lift_training collect`` rests training-split objects (never the benchmark's,
+``python -m grasp.evaluate.lift_training collect`` rests training-split objects (never the benchmark's,
 which are held out) on a table in a stable pose, plans on the true mesh with the table, and
 lift-tests every force-closure grasp the planner ranks (guarded execution, as the benchmark):
-``grasp/lift_model_data.csv``, one row per grasp. ``python -m grasp.lift_training train`` fits
-the logistic regression (scikit-learn) and writes ``grasp/lift_model.json`` with its
+``grasp/ranking/lift_model_data.csv``, one row per grasp. ``python -m grasp.evaluate.lift_training train`` fits
+the logistic regression (scikit-learn) and writes ``grasp/ranking/lift_model.json`` with its
 cross-validated figures (grouped by object).
 """
 
@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from grasp.lift_model import DATA_PATH, FEATURES, MODEL_PATH, features
+from grasp.ranking.lift_model import DATA_PATH, FEATURES, MODEL_PATH, features
 from grasp_client.wire import SupportPlane
 
 
@@ -104,7 +104,7 @@ def train(data: Path, out: Path) -> dict:
 def main(argv: Sequence[str] | None = None) -> None:
     parser = argparse.ArgumentParser(
         formatter_class=argparse.ArgumentDefaultsHelpFormatter,
-        prog="python -m grasp.lift_training", description=__doc__.split(
+        prog="python -m grasp.evaluate.lift_training", description=__doc__.split(
         "\n\n")[0])
     sub = parser.add_subparsers(dest="command", required=True)
     c = sub.add_parser("collect",

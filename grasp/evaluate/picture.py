@@ -2,39 +2,27 @@
 
 :class:`GraspWorld` owns its pybullet client (DIRECT, one per object). The object is a static
 concave triangle mesh, the hand is loaded from its generated URDF and placed kinematically (base
-pose and joint states reset, no dynamics). Used for pictures (:mod:`grasp.render`), for the
-physics built on top of it (:mod:`grasp.physics`), and to cross-check the fcl collision scene
-the planner uses (:mod:`grasp.collision`, built from the same
+pose and joint states reset, no dynamics). The hand is loaded as the lift test loads it (:func:`grasp.physics.hand.load_hand`). Used for
+pictures (:mod:`grasp.evaluate.render`) and to cross-check the fcl collision scene
+the planner uses (:mod:`grasp.hand.collision`, built from the same
 :class:`hands.barrett.HandKinematics`). pybullet tuples become named records
-(:class:`JointInfo`, :class:`ClosestPoint`), and :meth:`GraspWorld.saved` restores the world
+(:class:`grasp.physics.hand.JointInfo`, :class:`ClosestPoint`), and :meth:`GraspWorld.saved` restores the world
 between trials.
 """
 
 from __future__ import annotations
 
 import contextlib
-import tempfile
 from collections.abc import Iterator, Sequence
-from pathlib import Path
 from typing import NamedTuple
 
 import numpy as np
 import trimesh
 
 from completion.bullet import direct_client, pose_to_pybullet, pybullet, pybullet_to_pose
-from grasp.collision import CONTACT_DISTANCE_M, CollisionScene, check_mesh, check_pose
+from grasp.hand.collision import CONTACT_DISTANCE_M, CollisionScene, check_mesh, check_pose
+from grasp.physics.hand import load_hand
 from hands.barrett import BH8_282, JOINT_NAMES, BarrettParams
-
-
-class JointInfo(NamedTuple):
-    """The fields of ``getJointInfo`` that matter here (angles in radians)."""
-
-    index: int
-    name: str
-    kind: int  # pybullet.JOINT_REVOLUTE or pybullet.JOINT_FIXED
-    lower: float
-    upper: float
-    child_link: str
 
 
 class ClosestPoint(NamedTuple):
@@ -70,8 +58,6 @@ class GraspWorld:
         params: BarrettParams = BH8_282,
         object_rgba: Sequence[float] = (0.85, 0.55, 0.3, 1.0),
     ) -> None:
-        from hands.barrett.urdf import urdf_string
-
         self.mesh = check_mesh(mesh)
         self.params = params
         self.client = direct_client()
@@ -95,26 +81,13 @@ class GraspWorld:
             self.object_id = self.client.createMultiBody(
                 baseMass=0.0, baseCollisionShapeIndex=collision, baseVisualShapeIndex=visual
             )
-            with tempfile.TemporaryDirectory() as tmp:
-                path = Path(tmp) / "barrett.urdf"
-                path.write_text(urdf_string(params))
-                self.hand_id = self.client.loadURDF(
-                    str(path),
-                    useFixedBase=True,
-                    flags=pybullet.URDF_USE_INERTIA_FROM_FILE | pybullet.URDF_USE_IMPLICIT_CYLINDER,
-                )
+            self.hand_id, self.joints = load_hand(self.client, params, fixed_base=True)
         except Exception:
             self.client.disconnect()
             raise
-        self.joints: dict[str, JointInfo] = {}
         self.link_index: dict[str, int] = {"palm": -1}
-        for index in range(self.client.getNumJoints(self.hand_id)):
-            info = self.client.getJointInfo(self.hand_id, index)
-            record = JointInfo(
-                index, info[1].decode(), info[2], info[8], info[9], info[12].decode()
-            )
-            self.joints[record.name] = record
-            self.link_index[record.child_link] = index
+        for record in self.joints.values():
+            self.link_index[record.child_link] = record.index
         self.link_name = {index: name for name, index in self.link_index.items()}
         # pybullet pads concave meshes with a 1 mm margin; kinematic queries want true distances
         self.client.changeDynamics(self.object_id, -1, collisionMargin=0.0)

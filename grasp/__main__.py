@@ -1,0 +1,3 @@
+from grasp.cli import main
+
+raise SystemExit(main())

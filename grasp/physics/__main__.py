@@ -1,3 +1,0 @@
-from grasp.physics.cli import main
-
-raise SystemExit(main())
