@@ -43,6 +43,7 @@ import torch
 
 from completion import evidence as E
 from completion import grid as G
+from completion.view import View
 from grasp_client.wire import SupportPlane
 
 DEFAULT_THRESHOLD = 0.5
@@ -121,41 +122,28 @@ class CompletionStream:
         self.support_plane = plane
 
     # ------------------------------------------------------------------ input
-    def add_view(
-        self,
-        *,
-        depth: np.ndarray | None = None,
-        intrinsics: G.Intrinsics | None = None,
-        mask: np.ndarray | None = None,
-        points: np.ndarray | None = None,
-        grid: G.VoxelGrid | None = None,
-        camera_to_world: np.ndarray | None = None,
-        support_plane: SupportPlane | None = None,
-    ) -> ViewResult:
-        """Add one view given as exactly one of depth (+ intrinsics, mask), points or grid;
-        ``support_plane`` (world frame, needs ``camera_to_world``) is kept from this view on, as
-        :meth:`set_support_plane` would, and already cuts this view's completion."""
-        given = [x is not None for x in (depth, points, grid)]
-        if sum(given) != 1:
-            raise ValueError("give exactly one of depth (with intrinsics), points or grid")
-        if depth is not None:
-            if intrinsics is None:
-                raise ValueError("a depth image needs its intrinsics")
-            points = G.depth_to_points(depth, intrinsics, mask)
-        if camera_to_world is not None:
-            camera_to_world = np.asarray(camera_to_world, dtype=np.float64)
-            if camera_to_world.shape != (4, 4) or not np.isfinite(camera_to_world).all():
-                raise ValueError("camera_to_world must be a finite 4×4 matrix")
-        elif self.support_plane is not None or support_plane is not None:
+    def add_view(self, view: View | None = None, /, **given) -> ViewResult:
+        """Add one view: a :class:`completion.view.View`, or its parts as keywords, checked by
+        :meth:`View.of` (exactly one of ``depth`` with ``intrinsics`` and ``mask``, ``points`` or
+        ``grid``; ``camera_to_world``; ``support_plane``). A view's ``support_plane`` (world
+        frame) is kept from this view on, as :meth:`set_support_plane` would, and already cuts
+        this view's completion; once the stream keeps a plane every view needs its pose."""
+        if view is None:
+            view = View.of(**given)
+        elif given:
+            raise TypeError("give a View or its parts as keywords, not both")
+        pose = view.camera_to_world
+        if pose is None and self.support_plane is not None:
             raise ValueError(f"{SupportPlane.NEEDS_POSES}: every view of a stream with one "
                              "needs its pose")
-        if support_plane is not None:
-            self.support_plane = support_plane
+        if view.support_plane is not None:
+            self.support_plane = view.support_plane
         bounds = None
-        if grid is None:
-            pts = G.as_points(points)
+        if view.grid is None:
+            pts = view.points
+            assert pts.ndim == 2 and pts.shape[1] == 3 and pts.dtype == np.float64
             transform, bounds = G.view_grid(
-                pts, camera_to_world, self.grid_to_camera, self.camera_to_world, self._seen_bounds
+                pts, pose, self.grid_to_camera, self.camera_to_world, self._seen_bounds
             )
             occ = (
                 G.voxelize_points(pts, transform)
@@ -163,8 +151,8 @@ class CompletionStream:
                 else np.zeros(G.GRID_SHAPE, dtype=bool)
             )
         else:
-            transform, occ = grid.grid_to_camera, grid.occupancy
-        result = self._step(occ, transform, camera_to_world)
+            transform, occ = view.grid.grid_to_camera, view.grid.occupancy
+        result = self._step(occ, transform, pose)
         self._seen_bounds = bounds
         return result
 

@@ -26,6 +26,7 @@ object on its upper side) is the table, an obstacle to the hand as in GraspIt!
 from __future__ import annotations
 
 import dataclasses
+import math
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -34,14 +35,17 @@ import numpy as np
 import trimesh
 
 from grasp.defaults import AUTOGRASP_BUDGET
+from grasp.hand.autograsp import pregrasp_pose
 from grasp.hand.collision import CollisionScene, check_mesh
 from grasp.hand.result import GraspResult
+from grasp.hand.table import hand_primitives
 from grasp.physics.verify import DEFAULT_VERIFY, VerifySettings
+from grasp.ranking.rank import palm_touches
 from grasp.ranking.select import select
 from grasp.search.candidates import DEFAULT_SPREADS_DEG, STANDOFF_M
 from grasp.search.loop import search
 from grasp.search.obstacles import Obstacles
-from grasp_client.wire import SupportPlane
+from grasp_client.wire import JOINT_NAMES, Contact, Grasp, Primitive, SupportPlane
 
 #: Largest object the planner tries, as its bounding-box diagonal (metres). The open BH8-282
 #: spans about 0.3 m, so bigger shapes come back as failures (no force closure); one several
@@ -182,3 +186,39 @@ class _Stopwatch:
         self.stages[stage] += now - self._clock
         self._clock = now
         self.counts.update(counts)
+
+
+def wire_grasp(result: GraspResult, camera_to_world: np.ndarray | None = None) -> Grasp:
+    """The wire form of a planned grasp (:class:`grasp_client.wire.Grasp`, what ``GET /grasp``
+    answers): its poses in the mesh's frame and, given ``camera_to_world``, in the world; the
+    pre-grasp pose (:func:`grasp.hand.autograsp.pregrasp_pose`), the quality, the contacts and
+    the hand's links placed as primitives (:func:`grasp.hand.table.hand_primitives`)."""
+    palm = np.asarray(result.palm_pose, dtype=np.float64)
+    before = pregrasp_pose(palm)
+    end = np.asarray(result.end_palm_pose, dtype=np.float64)
+    world = None if camera_to_world is None else np.asarray(camera_to_world, dtype=np.float64)
+    return Grasp(
+        palm_pose=palm,
+        palm_pose_world=None if world is None else world @ palm,
+        pregrasp_pose=before,
+        pregrasp_pose_world=None if world is None else world @ before,
+        joints_deg=dict(zip(JOINT_NAMES, map(float, result.joints_deg), strict=True)),
+        dofs_deg=np.asarray(result.dofs_deg, dtype=np.float64),
+        epsilon=float(result.epsilon),
+        volume=float(result.volume),
+        force_epsilon=float(result.force_epsilon),
+        palm_contact=palm_touches(result),
+        approach_stop=result.approach_stop,
+        hold_probability=None if math.isnan(result.hold_probability)
+        else float(result.hold_probability),
+        verification=result.verification,
+        contacts=[Contact(c.link, np.asarray(c.point, dtype=np.float64),
+                          np.asarray(c.normal, dtype=np.float64)) for c in result.contacts],
+        hand=[Primitive(link, kind, [float(v) for v in size], pose)
+              for link, kind, size, pose in hand_primitives(result)],
+        kind=result.kind,
+        wrist_rise=result.wrist_rise,
+        preshape_deg=float(result.preshape_deg),
+        end_palm_pose=end,
+        end_palm_pose_world=None if world is None else world @ end,
+    )

@@ -43,7 +43,7 @@ def main(argv: list[str] | None = None) -> None:
         )
     import uvicorn
 
-    from service.connections import check_uvicorn, serve
+    from service.server.connections import check_uvicorn, serve
 
     check_uvicorn(uvicorn.__version__)  # before the model loads
     from service.app import create_app

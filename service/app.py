@@ -1,8 +1,9 @@
 """The FastAPI app factory: settings in, app out; the model is loaded in the lifespan.
 
-The routers (:mod:`service.routes`, :mod:`service.inspector`), the middleware
-(:mod:`service.middleware`), the error handlers (:mod:`service.errors`) and the API document
-(:mod:`service.openapi`) each live in their own module; this one puts them together.
+The routers (:mod:`service.api.views`, :mod:`service.api.grasps`, :mod:`service.api.sessions`,
+:mod:`service.api.inspector`), the middleware
+(:mod:`service.api.middleware`), the error handlers (:mod:`service.api.errors`) and the API document
+(:mod:`service.api.openapi`) each live in their own module; this one puts them together.
 """
 
 from __future__ import annotations
@@ -19,30 +20,21 @@ from anyio import CapacityLimiter
 from fastapi import FastAPI
 from fastapi.staticfiles import StaticFiles
 
-from service import errors, inspector, openapi, routes
-from service.deps import Services
-from service.frames import FrameChecks
-from service.memory import return_freed_memory
-from service.middleware import BodyLimit, QueryOnce, TokenGate
-from service.parsing import BodyParser
-from service.pipeline import Pipeline
-from service.planning import Planner
-from service.sessions import SessionLocks, open_store
+from service.api import errors, grasps, inspector, openapi, sessions, views
+from service.api.middleware import BodyLimit, QueryOnce, TokenGate
+from service.engine.pipeline import Pipeline
+from service.engine.planning import Planner
+from service.intake.memory import return_freed_memory
+from service.intake.parsing import BodyParser
+from service.services import Services
 from service.settings import Settings
-from service.store import Store
+from service.store.base import Store
+from service.store.sessions import SessionLocks, open_store
 
 log = logging.getLogger(__name__)
 
 #: Seconds between sweeps that delete expired sessions (at most; shorter for short TTLs).
 PURGE_INTERVAL_S = 60.0
-
-
-def frame_checks(settings: Settings) -> FrameChecks | None:
-    """The frame checks' tolerances from the settings (None: GRASP_CHECK_FRAMES is off)."""
-    if not settings.check_frames:
-        return None
-    return FrameChecks(settings.max_camera_distance_m, settings.plane_tolerance_m,
-                       settings.max_plane_gap_m, settings.max_object_jump_m)
 
 
 def create_app(settings: Settings | None = None) -> FastAPI:
@@ -55,9 +47,11 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         lifespan=_lifespan,
     )
     app.state.settings = settings
-    app.include_router(routes.router)  # views, grasps, sessions (token)
+    app.include_router(views.router)  # POST /views (token)
+    app.include_router(grasps.router)  # GET /grasp (token)
+    app.include_router(sessions.router)  # a session's summary, mesh, occupancy (token)
     app.include_router(inspector.data_router)  # the inspector's observed points, scene (token)
-    app.include_router(routes.health_router)  # /healthz (public)
+    app.include_router(sessions.health_router)  # /healthz (public)
     app.include_router(inspector.page_router)  # the inspector page (public)
     app.mount("/static/inspector", StaticFiles(directory=inspector.STATIC), name="inspector")
     app.add_middleware(BodyLimit, max_bytes=settings.max_body_bytes)
@@ -77,7 +71,7 @@ async def _lifespan(app: FastAPI) -> AsyncIterator[None]:
 
     settings: Settings = app.state.settings
     torch.set_num_threads(settings.torch_threads)
-    return_freed_memory()  # big arrays given back to the system when freed (service.memory)
+    return_freed_memory()  # big arrays given back to the system when freed (service.intake.memory)
     model = await anyio.to_thread.run_sync(load_model, settings.model)
     posed = None  # MVP's sessions with camera poses run the model trained on them
     if settings.model == "mvp":
@@ -85,7 +79,7 @@ async def _lifespan(app: FastAPI) -> AsyncIterator[None]:
     store = await anyio.to_thread.run_sync(open_store, settings)
     pipeline = await anyio.to_thread.run_sync(
         lambda: Pipeline(model, store, model_name=settings.model, max_views=settings.max_views,
-                         frame_checks=frame_checks(settings), registered=settings.registered,
+                         frame_checks=settings.frame_checks(), registered=settings.registered,
                          posed_model=posed)
     )
     app.state.services = Services(
@@ -105,10 +99,7 @@ async def _lifespan(app: FastAPI) -> AsyncIterator[None]:
             body_memory=settings.body_memory_bytes,
             decode_memory=settings.decode_memory_bytes,
             memory_wait_s=settings.memory_wait_s,
-            max_image_pixels=settings.max_image_pixels,
-            max_points=settings.max_points,
-            max_depth_median_m=settings.max_depth_median_m,
-            max_point_distance_m=settings.max_point_distance_m,
+            limits=settings.decode_limits(),
             at_once=settings.max_parsing,
         ),
     )

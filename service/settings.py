@@ -4,11 +4,16 @@ from __future__ import annotations
 
 import ipaddress
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from pydantic import Field, SecretStr, field_validator, model_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 from grasp.defaults import AUTOGRASP_BUDGET
+
+if TYPE_CHECKING:
+    from service.intake.frames import FrameChecks
+    from service.intake.inputs import DecodeLimits
 
 
 class Settings(BaseSettings):
@@ -131,7 +136,7 @@ class Settings(BaseSettings):
     )
     check_frames: bool = Field(
         True, description="check each posed view's camera_pose and support_plane against what it "
-        "shows (service/frames.py): a contradiction is a 422 naming the likely mistake"
+        "shows (service/intake/frames.py): a contradiction is a 422 naming the likely mistake"
     )
     max_camera_distance_m: float = Field(
         20.0, gt=0, description="a camera_pose farther from the world's origin, or a camera that "
@@ -204,6 +209,23 @@ class Settings(BaseSettings):
         """The trusted proxies' addresses, normalised (``ipaddress``'s spelling)."""
         return frozenset(str(ipaddress.ip_address(p.strip()))
                          for p in self.trusted_proxies.split(",") if p.strip())
+
+    def frame_checks(self) -> FrameChecks | None:
+        """The frame checks' tolerances (:mod:`service.intake.frames`; None: GRASP_CHECK_FRAMES
+        is off)."""
+        from service.intake.frames import FrameChecks
+
+        if not self.check_frames:
+            return None
+        return FrameChecks(self.max_camera_distance_m, self.plane_tolerance_m,
+                           self.max_plane_gap_m, self.max_object_jump_m)
+
+    def decode_limits(self) -> DecodeLimits:
+        """What a view may hold (:func:`service.intake.inputs.decode_view`)."""
+        from service.intake.inputs import DecodeLimits
+
+        return DecodeLimits(self.max_image_pixels, self.max_points, self.max_depth_median_m,
+                            self.max_point_distance_m)
 
     @model_validator(mode="after")
     def _verify_within_its_maximum(self) -> Settings:

@@ -30,8 +30,8 @@ from completion.config import ModelConfig
 from completion.grid import VoxelGrid
 from completion.model import build_model, load_model, save_checkpoint
 from completion.stream import CompletionStream
-from service.inputs import decode_view
-from service.schemas import ViewIn
+from service.api.schemas import ViewIn
+from service.intake.inputs import decode_view
 from service.settings import Settings
 
 TINY = ModelConfig(channels=(4, 8, 8), embed_dim=16, n_heads=2, n_features=8)
@@ -88,8 +88,8 @@ def reference(model_path: str, bodies: list[dict]) -> CompletionStream:
     """The same views through an in-process CompletionStream (no HTTP, no store)."""
     stream = CompletionStream(load_model(model_path))
     for body in bodies:
-        view = decode_view(ViewIn.model_validate(body), max_image_pixels=10**9, max_points=10**9)
-        stream.add_view(**view.add_view_kwargs())
+        limits = Settings(max_image_pixels=10**9, max_points=10**9).decode_limits()
+        stream.add_view(decode_view(ViewIn.model_validate(body), limits))
     return stream
 
 

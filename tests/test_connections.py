@@ -1,4 +1,4 @@
-"""Connections to a real ``python -m service`` (service/connections.py): early answers that every
+"""Connections to a real ``python -m service`` (service/server/connections.py): early answers that every
 client reads, deadlines for a request's head and body, a cap on connections per client address."""
 
 from __future__ import annotations
@@ -219,7 +219,7 @@ def test_a_head_over_the_limit_in_one_write_is_refused(server, where, size, stat
 
 
 def test_refused_connections_are_logged_once_per_address_and_interval():
-    from service.connections import RefusalLog
+    from service.server.connections import RefusalLog
 
     now = [0.0]
     lines: list[str] = []
@@ -254,7 +254,7 @@ TOKENS = ("alpha-token", "beta-token")
 
 
 def test_a_client_is_named_by_its_token_or_the_address_a_trusted_proxy_forwards():
-    from service.connections import Limits
+    from service.server.connections import Limits
 
     limits = Limits(1.0, 1.0, 4, 0, 16384, tokens=TOKENS, proxies=frozenset({"10.0.0.1"}))
     head = b"GET / HTTP/1.1\r\nHost: x\r\n"

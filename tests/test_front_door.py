@@ -16,9 +16,10 @@ import pytest
 from fastapi.testclient import TestClient
 from service_helpers import Server, points_view, save_tiny, settings
 
-from service import parsing
 from service.app import create_app
-from service.parsing import BodyParser
+from service.intake import parsing
+from service.intake.parsing import BodyParser
+from service.settings import Settings
 
 CONFIG = Path(__file__).resolve().parent / "schemathesis.toml"
 
@@ -52,7 +53,10 @@ def test_big_bodies_are_parsed_in_a_worker_process(monkeypatch):
     """The same answers from the process pool as from the thread, errors included."""
     body = httpx.Request("POST", "http://x", json=points_view(n=500)).content
     bad = httpx.Request("POST", "http://x", json={"points": [[0, 0, -1]]}).content
-    parser = BodyParser(1, max_image_pixels=10**6, max_points=10**6)
+    s = Settings(max_image_pixels=10**6, max_points=10**6)
+    parser = BodyParser(1, limits=s.decode_limits(), at_once=2, max_body_bytes=s.max_body_bytes,
+                        body_memory=s.body_memory_bytes, decode_memory=s.decode_memory_bytes,
+                        memory_wait_s=s.memory_wait_s)
 
     async def both(raw: bytes):
         answers = []
@@ -207,7 +211,7 @@ def test_a_422_lists_at_most_twenty_errors_and_counts_the_rest(client):
     """A body of 50,000 empty points got one error each (a 331 MB answer for 8.4 MB); now the
     points' validation stops at the first bad one, and any 422 lists the first 20 errors and a
     count of the rest (50,000 unknown keys), a few kilobytes."""
-    from service.parsing import MAX_ERRORS
+    from service.intake.parsing import MAX_ERRORS
 
     r = client.post("/views", json={"points": [[0.0, 0.0, 0.5]] * 3 + [[]] * 1_900})
     assert r.status_code == 422  # (GRASP_MAX_POINTS is 2,000 here)
@@ -228,7 +232,7 @@ def test_a_422_lists_at_most_twenty_errors_and_counts_the_rest(client):
 def test_a_killed_server_leaves_no_process_and_its_pools_start_with_it(tmp_path, tiny_model):
     """Both worker pools (planners, big-body decoders) are running when /healthz first answers;
     after kill -9 of the server none of its processes is left 5 s later (they watch their
-    parent: service/workers.py)."""
+    parent: service/intake/workers.py)."""
     server = Server(tmp_path, tiny_model, tmp_path / "store.sqlite", planning_workers=2)
     try:
         family = _descendants(server.process.pid)

@@ -81,6 +81,77 @@ def test_every_source_and_test_file_reads_in_one_sitting() -> None:
     assert not long, f"files over {MAX_LINES} lines: {long}"
 
 
+#: The stages inside grasp/ and service/, lowest first (docs/design.md §2). A module belongs to
+#: the group of its longest matching prefix; it may import its own group and the stages below,
+#: never a stage above nor another group of its own stage (search and physics both build on the
+#: hand and know nothing of each other).
+STAGES = {
+    "grasp": [
+        ["grasp.defaults"],
+        ["grasp.hand"],
+        ["grasp.search", "grasp.physics"],
+        ["grasp.ranking"],
+        ["grasp.planner"],
+        ["grasp.cli"],
+        ["grasp.evaluate"],
+        ["grasp.__main__"],
+    ],
+    "service": [
+        ["service.api.schemas", "service.api.auth"],  # the wire's vocabulary; stdlib token checks
+        ["service.intake"],
+        ["service.settings"],  # builds the intake's limits and frame checks
+        ["service.store"],
+        ["service.engine"],
+        ["service.services"],
+        ["service.api"],
+        ["service.app"],
+        ["service.server", "service.load"],
+        ["service.__main__"],
+    ],
+}
+
+
+def _stage(name: str) -> tuple[int, str] | None:
+    """(stage index, group) of a module of grasp/ or service/; None for the package itself."""
+    best = None
+    for i, stage in enumerate(STAGES.get(name.split(".")[0], [])):
+        for group in stage:
+            if (name == group or name.startswith(group + ".")) and (
+                    best is None or len(group) > len(best[1])):
+                best = (i, group)
+    return best
+
+
+def test_the_stages_import_downward_only() -> None:
+    problems = []
+    for name, targets in _graph().items():
+        here = _stage(name)
+        if here is None:
+            continue
+        for target in targets:
+            there = _stage(target)
+            if there is None or target.split(".")[0] != name.split(".")[0]:
+                continue
+            if there[0] > here[0] or (there[0] == here[0] and there[1] != here[1]):
+                problems.append(f"{name} ({here[1]}) imports {target} ({there[1]})")
+    assert not problems, "\n".join(problems)
+
+
+def test_every_module_has_a_stage_and_the_top_levels_stay_small() -> None:
+    """Every module of grasp/ and service/ sits in a stage; each package's top level holds at
+    most six modules (the rest live in the stage folders)."""
+    modules = [m for m in _modules() if m.split(".")[0] in STAGES]
+    assert [m for m in modules if m not in STAGES and _stage(m) is None] == []
+    for package in STAGES:
+        top = sorted(p.name for p in (REPO / package).glob("*.py"))
+        assert len(top) <= 6, (package, top)
+
+
+def test_the_physics_check_imports_no_planner() -> None:
+    assert not [(m, t) for m, targets in _graph().items() if m.startswith("grasp.physics")
+                for t in targets if t.startswith(("grasp.planner", "grasp.search", "grasp.ranking"))]
+
+
 #: Modules of grasp/ that hold constants only (they import nothing), which settings may name.
 CONSTANTS = {"grasp.defaults"}
 
@@ -100,7 +171,7 @@ def test_the_wire_types_load_no_http_client() -> None:
     import subprocess
     import sys
 
-    code = ("import sys, completion.stream, completion.scenes, hands.barrett, service.inputs; "
+    code = ("import sys, completion.stream, completion.scenes, hands.barrett, service.intake.inputs; "
             "assert 'httpx' not in sys.modules, 'httpx loaded'; "
             "from grasp_client import GraspClient, SupportPlane; "
             "assert 'httpx' in sys.modules and GraspClient.__module__ == 'grasp_client.client'")

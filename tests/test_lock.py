@@ -17,7 +17,7 @@ from packaging.requirements import Requirement
 from packaging.utils import canonicalize_name
 from packaging.version import Version
 
-from service.connections import TESTED_UVICORN, check_uvicorn
+from service.server.connections import TESTED_UVICORN, check_uvicorn
 
 ROOT = Path(__file__).resolve().parents[1]
 

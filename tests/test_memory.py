@@ -1,4 +1,4 @@
-"""service.memory: what a view body and its decoding reserve, the byte budgets that make requests
+"""service.intake.memory: what a view body and its decoding reserve, the byte budgets that make requests
 wait (then 503), and, against a real server, rounds of concurrent bombs of each depth encoding
 that stay within 200 MB of idle and give the memory back."""
 
@@ -17,7 +17,7 @@ from fastapi import HTTPException
 from service_helpers import Server, points_view
 
 from grasp_client.wire import b64, png_bytes
-from service.memory import (
+from service.intake.memory import (
     DECODE_BYTES_PER_PIXEL,
     ByteBudget,
     decode_cost,
@@ -86,21 +86,22 @@ def _body_shapes(n: int) -> dict[str, bytes]:
 
 @pytest.mark.parametrize("shape", list(_body_shapes(1)))
 def test_what_a_body_of_points_reserves_covers_what_parsing_it_holds(shape):
-    """The decoding budget's estimate of a JSON body (service.memory.text_cost), measured
+    """The decoding budget's estimate of a JSON body (service.intake.memory.text_cost), measured
     against tracemalloc's peak while the body is parsed, validated and decoded, shape by shape:
     the 40× of ``[0,0,1]`` included."""
     import gc
     import tracemalloc
 
-    from service.parsing import parse_view
+    from service.intake.parsing import parse_view
+    from service.settings import Settings
 
     raw = _body_shapes(20_000)[shape]
     gc.collect()
     tracemalloc.start()
     try:
         base = tracemalloc.get_traced_memory()[0]
-        answer = parse_view(raw, "application/json", max_image_pixels=1 << 20,
-                            max_points=1 << 20)
+        limits = Settings(max_image_pixels=1 << 20, max_points=1 << 20).decode_limits()
+        answer = parse_view(raw, "application/json", limits)
         peak = tracemalloc.get_traced_memory()[1] - base
     finally:
         tracemalloc.stop()
@@ -112,7 +113,7 @@ def test_what_a_body_of_points_reserves_covers_what_parsing_it_holds(shape):
 
 
 def test_a_body_with_more_arrays_than_points_allowed_is_refused_unparsed():
-    from service.memory import OTHER_ARRAYS, too_many_arrays
+    from service.intake.memory import OTHER_ARRAYS, too_many_arrays
 
     assert too_many_arrays(b'{"points": [' + b",".join([b"[0,0,1]"] * 10) + b"]}", 10) is None
     view = json.dumps(points_view(n=10) | {"camera_pose": np.eye(4).tolist(),

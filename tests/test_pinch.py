@@ -172,17 +172,17 @@ def test_the_wire_carries_the_rise(plate):
 
 
 def test_get_grasp_carries_a_table_pinch(plate):
-    """The service's answer for a table pinch (service.routes._grasp_out, serialised as the
+    """The service's answer for a table pinch (grasp.planner.wire_grasp, serialised as the
     route serialises it, read back by the client): its kind, rise and both palm poses, in the
     camera and the world frame; the hand drawn where closing ends."""
     from pydantic import TypeAdapter
 
-    from service.routes import _grasp_out
+    from grasp.planner import wire_grasp
 
     _, grasp = plate
     camera = np.eye(4)
     camera[:3, 3] = [0.1, -0.2, 0.5]
-    body = TypeAdapter(Grasp).dump_python(_grasp_out(grasp, camera), mode="json")
+    body = TypeAdapter(Grasp).dump_python(wire_grasp(grasp, camera), mode="json")
     assert body["kind"] == TABLE_PINCH and body["wrist_rise"]["end_m"] > 0.05
     back = Grasp.from_json(body)
     np.testing.assert_allclose(back.end_palm_pose, grasp.end_palm_pose)

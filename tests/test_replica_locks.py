@@ -19,9 +19,9 @@ import pytest
 import redis
 from service_helpers import Server, points_view, post_views
 
-from service.redis_store import RedisSessionStore
 from service.settings import Settings
-from service.store import WAIT_LEASES, ConcurrentUpdate
+from service.store.base import WAIT_LEASES, ConcurrentUpdate
+from service.store.redis_store import RedisSessionStore
 
 LEASE_S = Settings().lock_lease_s  # the default, as a deployment runs it
 INFERENCE_WORKERS = 2  # Server's setting: two locked sessions would fill every slot
@@ -163,7 +163,7 @@ def test_a_lock_left_for_30_s_delays_no_other_session(replica):
 def test_both_stores_keep_an_idempotent_answer_for_a_sessions_life(redis_url, tmp_path):
     """Store.recall/remember, behind POST /views's Idempotency-Key: in Redis (shared by the
     replicas) and in SQLite, gone once a session would be."""
-    from service.sqlite_store import SQLiteSessionStore
+    from service.store.sqlite_store import SQLiteSessionStore
 
     now = [1000.0]
     sqlite = SQLiteSessionStore(tmp_path / "s.sqlite", max_sessions=5, ttl_s=60.0,

@@ -415,7 +415,7 @@ def test_planner_queue_is_bounded_and_gone_clients_are_dropped(monkeypatch):
     import asyncio
     import time as _time
 
-    from service import planning
+    from service.engine import planning
 
     calls = []
 

@@ -20,10 +20,10 @@ from service_helpers import Server, post_concurrently, post_views, reference, sa
 from completion.model import load_model
 from completion.stream import CompletionStream
 from service.load import scene_views
-from service.redis_store import RedisSessionStore
 from service.settings import Settings
-from service.sqlite_store import SQLiteSessionStore
-from service.store import ConcurrentUpdate, SessionNotFound, StoreFull
+from service.store.base import ConcurrentUpdate, SessionNotFound, StoreFull
+from service.store.redis_store import RedisSessionStore
+from service.store.sqlite_store import SQLiteSessionStore
 
 
 @pytest.fixture(params=["sqlite", "redis"])

@@ -214,7 +214,7 @@ def test_a_verification_does_not_starve_other_sessions(monkeypatch):
     import asyncio
     import time
 
-    from service import planning
+    from service.engine import planning
 
     calls = []
 

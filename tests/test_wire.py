@@ -14,8 +14,8 @@ from pydantic import TypeAdapter
 
 from grasp_client import wire
 from grasp_client.wire import Contact, Grasp, Primitive, SupportPlane
+from service.api.schemas import GraspsOut, ViewIn
 from service.app import create_app
-from service.schemas import GraspsOut, ViewIn
 
 
 @pytest.mark.parametrize("dtype", [np.uint8, np.uint16])

@@ -82,6 +82,15 @@ def build_parser() -> argparse.ArgumentParser:
         help="50 sequences per cell, the planner's 64 candidates (about 40 min on two cores)",
     )
     p.set_defaults(preset="default")
+    _add_what_options(p)
+    for option in OPTIONS.values():  # the other tables' own (tables.base.Option)
+        _add(p, option)
+    _add_run_options(p)
+    return p
+
+
+def _add_what_options(p: argparse.ArgumentParser) -> None:
+    """What is evaluated: conditions, rows, meshes, and how many sequences of each."""
     p.add_argument(
         "--conditions",
         type=name_list(CONDITIONS, "conditions"),
@@ -125,8 +134,10 @@ def build_parser() -> argparse.ArgumentParser:
         help="of the grasped test sequences, how many are also lift-tested in pybullet dynamics "
         f"(grasp success; 0 = none; {_preset_help('physics_count')})",
     )
-    for option in OPTIONS.values():  # the other tables' own (tables.base.Option)
-        _add(p, option)
+
+
+def _add_run_options(p: argparse.ArgumentParser) -> None:
+    """How it runs: the planner's candidates, views, workers, seed, weights and outputs."""
     p.add_argument(
         "--candidates",
         type=integer_at_least(1),
@@ -164,7 +175,6 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--no-figures", action="store_true", help="skip the PNG figures")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
-    return p
 
 
 def settings_from_args(args: argparse.Namespace, parser: argparse.ArgumentParser) -> Settings:

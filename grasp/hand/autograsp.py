@@ -99,6 +99,25 @@ def _scene_of(
     raise ValueError(f"mesh must be a trimesh.Trimesh or a CollisionScene, got {type(mesh)}")
 
 
+def _check_options(scene: CollisionScene, palm: np.ndarray, spread_deg: float, max_travel: float,
+                   approach_step: float, close_step_deg: float, pinch: bool,
+                   preshape_deg: float) -> None:
+    """:func:`autograsp`'s options, each a ValueError saying what was expected."""
+    params = scene.kinematics.params
+    if not 0.0 <= spread_deg <= params.spread_max_deg:
+        raise ValueError(f"spread_deg must be in [0, {params.spread_max_deg}], got {spread_deg}")
+    if not (math.isfinite(max_travel) and max_travel >= 0.0):
+        raise ValueError(f"max_travel must be a finite distance >= 0, got {max_travel}")
+    if not approach_step > 0.0 or not close_step_deg > 0.0:
+        raise ValueError("approach_step and close_step_deg must be positive")
+    if pinch and (scene.support_plane is None or not faces_table(palm, scene.support_plane)):
+        raise ValueError("a table pinch needs a support plane and the palm facing it "
+                         "(palm +z along the plane's −n)")
+    if not 0.0 <= preshape_deg < params.finger_dof_max_deg or (pinch and preshape_deg):
+        raise ValueError(f"preshape_deg must be in [0, {params.finger_dof_max_deg}) degrees "
+                         f"(0 for a table pinch), got {preshape_deg}")
+
+
 # -- public API ------------------------------------------------------------------------------------
 def autograsp(
     mesh: trimesh.Trimesh | CollisionScene,
@@ -158,18 +177,8 @@ def autograsp(
     scene = _scene_of(mesh, support_plane)
     palm = check_pose(palm_pose)
     params = scene.kinematics.params
-    if not 0.0 <= spread_deg <= params.spread_max_deg:
-        raise ValueError(f"spread_deg must be in [0, {params.spread_max_deg}], got {spread_deg}")
-    if not (math.isfinite(max_travel) and max_travel >= 0.0):
-        raise ValueError(f"max_travel must be a finite distance >= 0, got {max_travel}")
-    if not approach_step > 0.0 or not close_step_deg > 0.0:
-        raise ValueError("approach_step and close_step_deg must be positive")
-    if pinch and (scene.support_plane is None or not faces_table(palm, scene.support_plane)):
-        raise ValueError("a table pinch needs a support plane and the palm facing it "
-                         "(palm +z along the plane's −n)")
-    if not 0.0 <= preshape_deg < params.finger_dof_max_deg or (pinch and preshape_deg):
-        raise ValueError(f"preshape_deg must be in [0, {params.finger_dof_max_deg}) degrees "
-                         f"(0 for a table pinch), got {preshape_deg}")
+    _check_options(scene, palm, spread_deg, max_travel, approach_step, close_step_deg, pinch,
+                   preshape_deg)
     spread = math.radians(spread_deg)
     open_rad = np.radians(joints_from_dofs([spread_deg, *[preshape_deg] * 3], params=params))
     preshape = math.radians(preshape_deg)

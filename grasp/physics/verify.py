@@ -16,7 +16,7 @@ success. Each grasp carries what its verification saw (:class:`grasp_client.wire
 the type that travels).
 
 The work is split so that the service can spread one grasp's trials over its planner processes
-and interleave them with other sessions' plans (:mod:`service.planning`): :func:`eligible`
+and interleave them with other sessions' plans (:mod:`service.engine.planning`): :func:`eligible`
 (which grasps may be tried), :func:`trials`, :func:`run_trial` (one lift test, picklable inputs),
 :func:`verdict` (a grasp's trials summed up) and :func:`order`. :func:`verify` is the same loop,
 serial, for ``plan``.

@@ -1,6 +1,6 @@
 """What travels between a robot program and the grasp service, defined once.
 
-The client builds and reads these; the service (``service/schemas.py``) uses the same classes as
+The client builds and reads these; the service (``service/api/schemas.py``) uses the same classes as
 its request and response bodies, so the OpenAPI schema comes from here. Only numpy is needed:
 the annotations below carry hooks (``__get_pydantic_core_schema__``) that pydantic calls on the
 server and that nothing calls on a robot PC.

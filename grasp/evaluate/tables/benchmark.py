@@ -10,6 +10,7 @@ import numpy as np
 
 from completion.bullet import quiet_fds
 from grasp.evaluate import benchmark_scenes as b
+from grasp.evaluate.benchmark_records import ObjectRecord, RowSummary
 from grasp.evaluate.cells import fmt
 from grasp.evaluate.config import FUSION, GRASP_SUCCESS, Job, Settings
 from grasp.evaluate.failure_figures import failures_figure
@@ -119,27 +120,26 @@ class BenchmarkTable(Table):
             "| Row | Held | Success | 95 % interval | Planned vs executed joints | Failures |",
             "|---|---|---|---|---|---|",
         ]
-        records = results["grasp_benchmark_objects"]
-        for row, cell in block.items():
-            failures = "; ".join(f"{n}× {reason}" for reason, n in cell["reasons"].items()) or "—"
-            rate = cell["held"] / cell["tested"] if cell["tested"] else None
-            lines.append(f"| {LABELS[row]} | {cell['held']}/{cell['tested']} | "
-                         f"{fmt(rate, GRASP_SUCCESS)} | {100 * cell['ci95'][0]:.0f}–"
-                         f"{100 * cell['ci95'][1]:.0f}% | {_joint_gap(records, row)} | "
+        records = [ObjectRecord.from_json(r) for r in results["grasp_benchmark_objects"]]
+        for row, cell in ((row, RowSummary.from_json(c)) for row, c in block.items()):
+            failures = "; ".join(f"{n}× {reason}" for reason, n in cell.reasons.items()) or "—"
+            lines.append(f"| {LABELS[row]} | {cell.held}/{cell.tested} | "
+                         f"{fmt(cell.rate, GRASP_SUCCESS)} | {100 * cell.ci95[0]:.0f}–"
+                         f"{100 * cell.ci95[1]:.0f}% | {_joint_gap(records, row)} | "
                          f"{failures} |")
         lines += ["", "Planned vs executed joints: the median over objects of the mean absolute "
                   "difference between the finger joints the planner predicted and those the lift "
                   "test's hand ended with (8 joints, degrees).", ""]
         lines += _verification(records, cfg)
-        failed = [r for r in records if not r["rows"].get("true_mesh", {"held": True})["held"]]
+        failed = [r for r in records if "true_mesh" in r.rows and not r.rows["true_mesh"].held]
         if failed:
             lines += ["Failures of the true-mesh row (benchmark_failures.png shows them):", "",
                       "| Object | Size (cm) | Mass (kg) | Grasp | Why |", "|---|---|---|---|---|"]
             for r in failed:
-                o = r["rows"]["true_mesh"]
-                size = " × ".join(f"{100 * v:.0f}" for v in r["size_m"])
-                lines.append(f"| {r['id']} | {size} | {r['mass_kg']:.2f} | "
-                             f"{o.get('kind', '—')} | {o['reason']} |")
+                o = r.rows["true_mesh"]
+                size = " × ".join(f"{100 * v:.0f}" for v in r.size_m)
+                lines.append(f"| {r.id} | {size} | {r.mass_kg:.2f} | {o.kind or '—'} | "
+                             f"{o.reason} |")
             lines.append("")
         return lines + _flat(records)
 
@@ -159,31 +159,31 @@ class BenchmarkTable(Table):
         return [] if path is None else [path]
 
 
-def _flat(records: list[dict]) -> list[str]:
+def _flat(records: list[ObjectRecord]) -> list[str]:
     """The objects lower than a table pinch's palm (:func:`grasp.hand.pinch.pinch_height`), planned on
     the true mesh: which held, with which grasp, and why the others did not."""
     from grasp.hand.pinch import pinch_height
 
-    low = [r for r in records if r["size_m"][2] < pinch_height() and "true_mesh" in r["rows"]]
+    low = [r for r in records if r.size_m[2] < pinch_height() and "true_mesh" in r.rows]
     if not low:
         return []
-    held = sum(r["rows"]["true_mesh"]["held"] for r in low)
+    held = sum(r.rows["true_mesh"].held for r in low)
     lines = [f"Flat and small objects (lower than {100 * pinch_height():.1f} cm on the table, "
              f"where table pinches are tried), planned on the true mesh: {held} of {len(low)} "
              "held.", "",
              "| Object | Size (cm) | Held | Grasp | Why |", "|---|---|---|---|---|"]
     for r in low:
-        o = r["rows"]["true_mesh"]
-        size = " × ".join(f"{100 * v:.1f}" for v in r["size_m"])
-        lines.append(f"| {r['id']} | {size} | {'yes' if o['held'] else 'no'} | "
-                     f"{o.get('kind', '—')} | {o['reason']} |")
+        o = r.rows["true_mesh"]
+        size = " × ".join(f"{100 * v:.1f}" for v in r.size_m)
+        lines.append(f"| {r.id} | {size} | {'yes' if o.held else 'no'} | {o.kind or '—'} | "
+                     f"{o.reason} |")
     return lines + [""]
 
 
-def _verification(records: list[dict], cfg: dict) -> list[str]:
+def _verification(records: list[ObjectRecord], cfg: dict) -> list[str]:
     """The verified rows: how their top grasps' trials on the planned mesh agree with the
     referee on the true object (a confusion table per row)."""
-    rows = [row for row in b.VERIFIED_ROWS if any(row in r["rows"] for r in records)]
+    rows = [row for row in b.VERIFIED_ROWS if any(row in r.rows for r in records)]
     if not rows:
         return []
     v = DEFAULT_VERIFY
@@ -201,16 +201,15 @@ def _verification(records: list[dict], cfg: dict) -> list[str]:
         "|---|---|---|---|---|---|---|---|",
     ]
     for row in rows:
-        outcomes = [r["rows"][row] for r in records if row in r["rows"]]
+        outcomes = [r.rows[row] for r in records if row in r.rows]
         cells = {(True, True): 0, (True, False): 0, (False, True): 0, (False, False): 0}
         untried = 0
         for o in outcomes:
-            v = o.get("verification")
-            if not v or not v["tried"]:
+            if o.verification is None or not o.verification.tried:
                 untried += 1
                 continue
-            cells[(v["held"] == v["trials"], bool(o["held"]))] += 1
-        tried = [o["tried"] for o in outcomes if "tried" in o]
+            cells[(o.verification.held == o.verification.trials, o.held)] += 1
+        tried = [o.tried for o in outcomes if o.tried is not None]
         median = f"{np.median(tried):.0f}" if tried else "—"
         lines.append(f"| {LABELS[row]} | {len(outcomes)} | {median} | {cells[True, True]} | "
                      f"{cells[True, False]} | {cells[False, True]} | {cells[False, False]} | "
@@ -218,10 +217,10 @@ def _verification(records: list[dict], cfg: dict) -> list[str]:
     return lines + [""]
 
 
-def _joint_gap(records: list[dict], row: str) -> str:
+def _joint_gap(records: list[ObjectRecord], row: str) -> str:
     """The median over objects of the mean |planned − executed| finger joint (degrees)."""
-    gaps = [float(np.mean(np.abs(np.subtract(o["planned_joints_deg"], o["executed_joints_deg"]))))
-            for o in (r["rows"].get(row, {}) for r in records) if "executed_joints_deg" in o]
+    gaps = [gap for r in records if row in r.rows
+            and (gap := r.rows[row].joint_gap_deg) is not None]
     return f"{np.median(gaps):.1f}°" if gaps else "—"
 
 

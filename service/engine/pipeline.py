@@ -1,11 +1,11 @@
 """The chain behind the routes, as plain blocking functions (the app runs them in worker threads).
 
 ``POST /views``: stored state → ``CompletionStream`` step → stored state.
-``GET /grasp``: stored state → completion → mesh (marching cubes); :mod:`service.planning` plans.
+``GET /grasp``: stored state → completion → mesh (marching cubes); :mod:`service.engine.planning` plans.
 
 A view to an existing session is applied while its caller holds the session's lock across
-replicas (:meth:`service.store.Store.try_lock`, which never waits: the app waits for it on its
-event loop, not in an inference slot, see :meth:`service.deps.Services.exclusive`); the
+replicas (:meth:`service.store.base.Store.try_lock`, which never waits: the app waits for it on its
+event loop, not in an inference slot, see :meth:`service.services.Services.exclusive`); the
 compare-and-swap on the view count is what guarantees each view is applied once and in order.
 """
 
@@ -25,9 +25,9 @@ from completion.mesh import grid_to_mesh
 from completion.stream import Completion, CompletionStream, ViewResult
 from grasp.search.obstacles import seen_others
 from grasp_client.wire import SupportPlane
-from service.frames import DEFAULT_CHECKS, FrameChecks, Previous, check_view
-from service.inputs import DecodedView, InputError
-from service.store import ConcurrentUpdate, SessionRecord, Store
+from service.intake.frames import FrameChecks, Previous, check_view
+from service.intake.inputs import DecodedView, InputError
+from service.store.base import ConcurrentUpdate, SessionRecord, Store
 
 #: How often a view is re-applied when another process changed the session meanwhile.
 UPDATE_ATTEMPTS = 5
@@ -73,7 +73,7 @@ class Pipeline:
         *,
         model_name: str,
         max_views: int | None = None,
-        frame_checks: FrameChecks | None = DEFAULT_CHECKS,
+        frame_checks: FrameChecks | None,
         registered: bool = True,
         posed_model: torch.nn.Module | None = None,
     ) -> None:
@@ -146,7 +146,7 @@ class Pipeline:
 
     def _check(self, stream: CompletionStream, view: DecodedView) -> None:
         """The view's camera pose and support plane against what it and the session show
-        (:mod:`service.frames`); raises InputError."""
+        (:mod:`service.intake.frames`); raises InputError."""
         if self.frame_checks is None or not view.check_frames:
             return
         plane = view.support_plane if view.support_plane is not None else stream.support_plane
@@ -165,29 +165,20 @@ class Pipeline:
             )
         return CompletionStream.from_bytes(self.model, record.state, posed_model=self.posed_model)
 
-    def set_support_plane(self, session_id: str, plane: SupportPlane) -> None:
+    def _keep_plane(self, record: SessionRecord, stream: CompletionStream,
+                    plane: SupportPlane) -> None:
         """Keep ``plane`` (world frame) with the session from now on (the caller holds its lock,
-        as for a view); nothing is written when the session already keeps the same plane."""
-        for _ in range(UPDATE_ATTEMPTS):
-            record = self.store.get(session_id)
-            stream = self._stream(record)
-            before = stream.support_plane
-            try:
-                stream.set_support_plane(plane)
-            except ValueError as exc:  # no camera poses
-                raise InputError(("query", "support_plane"), str(exc)) from exc
-            if before is not None and np.allclose(before.as_array(), plane.as_array(),
-                                                  atol=1e-12):
-                return
-            try:
-                self.store.update(record, state=stream.to_bytes(), views=stream.views,
-                                  object_seen=stream.seen)
-            except ConcurrentUpdate:
-                continue
+        as for a view); nothing is written when the session already keeps the same plane.
+        Raises ConcurrentUpdate when another process changed the session meanwhile."""
+        before = stream.support_plane
+        try:
+            stream.set_support_plane(plane)
+        except ValueError as exc:  # no camera poses
+            raise InputError(("query", "support_plane"), str(exc)) from exc
+        if before is not None and np.allclose(before.as_array(), plane.as_array(), atol=1e-12):
             return
-        raise ConcurrentUpdate(
-            f"session {session_id!r} kept changing while its support plane was stored; retry"
-        )
+        self.store.update(record, state=stream.to_bytes(), views=stream.views,
+                          object_seen=stream.seen)
 
     # ---------------------------------------------------------------------------- outputs
     def snapshot(self, session_id: str) -> Snapshot:
@@ -205,11 +196,27 @@ class Pipeline:
         c = self.snapshot(session_id).completion
         return grid_to_mesh(c.probabilities, c.grid_to_camera, threshold=c.threshold)
 
-    def grasp_mesh(self, session_id: str) -> tuple[Snapshot, trimesh.Trimesh, dict[str, float]]:
-        """What ``GET /grasp`` plans on: the completion's mesh; and each stage's milliseconds."""
+    def grasp_mesh(
+        self, session_id: str, support_plane: SupportPlane | None = None
+    ) -> tuple[Snapshot, trimesh.Trimesh, dict[str, float]]:
+        """What ``GET /grasp`` plans on: the completion's mesh; and each stage's milliseconds.
+        The session is read once; with ``support_plane`` (world frame) it keeps that plane from
+        now on (the caller holds its lock, as for a view) and the completion is cut at it."""
         t0 = time.perf_counter()
-        record = self.store.get(session_id)
-        stream = self._stream(record)
+        for _ in range(UPDATE_ATTEMPTS):
+            record = self.store.get(session_id)
+            stream = self._stream(record)
+            if support_plane is None:
+                break
+            try:
+                self._keep_plane(record, stream, support_plane)
+            except ConcurrentUpdate:
+                continue
+            break
+        else:
+            raise ConcurrentUpdate(
+                f"session {session_id!r} kept changing while its support plane was stored; retry"
+            )
         t1 = time.perf_counter()
         completion = stream.completion()
         t2 = time.perf_counter()
@@ -248,6 +255,6 @@ def _step(stream: CompletionStream, view: DecodedView) -> ViewResult:
     if view.registered is not None:  # the session's choice, from this view on
         stream.registered = view.registered
     try:
-        return stream.add_view(**view.add_view_kwargs())
+        return stream.add_view(view)
     except ValueError as exc:  # the stream's own checks on the decoded arrays
         raise InputError(("body",), str(exc)) from exc

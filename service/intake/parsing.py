@@ -3,7 +3,7 @@
 JSON parsing and pydantic validation hold Python's GIL for their whole run (about 4 s for a
 10⁶-point, 33 MB body on this CPU), so a worker *thread* would still stall every other request.
 Bodies over :data:`IN_PROCESS_BYTES` therefore go to a small pool of worker processes, which
-parse, validate and decode them into numpy arrays (:class:`~service.inputs.DecodedView`); only
+parse, validate and decode them into numpy arrays (:class:`~service.intake.inputs.DecodedView`); only
 those arrays come back. Small bodies, the common case, are parsed in a thread: a process round
 trip would cost more than the parse.
 
@@ -17,6 +17,7 @@ from __future__ import annotations
 import asyncio
 import email.message
 import json
+import math
 import multiprocessing as mp
 import re
 from collections.abc import AsyncIterator
@@ -31,10 +32,10 @@ from fastapi import HTTPException, Request, status
 from fastapi.exceptions import RequestValidationError
 from pydantic import ValidationError
 
-from service import workers
-from service.inputs import DecodedView, InputError, decode_view
-from service.memory import ByteBudget, body_cost, decode_cost, too_many_arrays
-from service.schemas import ViewIn
+from service.api.schemas import ViewIn
+from service.intake import workers
+from service.intake.inputs import DecodedView, DecodeLimits, InputError, decode_view
+from service.intake.memory import ByteBudget, body_cost, decode_cost, too_many_arrays
 
 #: Bodies up to this size are parsed in a thread of the server process.
 IN_PROCESS_BYTES = 512 * 1024
@@ -115,7 +116,7 @@ def _each_key_once(pairs: list[tuple[str, object]]) -> dict:
     return out
 
 
-def parse_view(raw: bytes, content_type: str | None, **limits) -> tuple:
+def parse_view(raw: bytes, content_type: str | None, limits: DecodeLimits) -> tuple:
     """``("ok", ParsedView)`` or ``("error", status, detail)``: plain data, so that a worker
     process sends it back without pickling exceptions. ``limits``: :func:`decode_view`'s."""
     if not raw:
@@ -149,10 +150,14 @@ def parse_view(raw: bytes, content_type: str | None, **limits) -> tuple:
         return "error", 422, capped(errors)
     del body  # the validated copy is what is decoded: JSON's own lists go before the arrays come
     try:
-        decoded = decode_view(view, **limits)
+        decoded = decode_view(view, limits)
     except InputError as exc:
         return "error", 422, [{"loc": list(exc.loc), "msg": exc.message, "type": "value_error"}]
     return "ok", ParsedView(view.session_id, decoded)
+
+
+#: The warm-up body's limits: it is small and plausible whatever the settings say.
+_WARM_LIMITS = DecodeLimits(1 << 20, 1 << 20, math.inf, math.inf)
 
 
 def _warm_decoder() -> bool:
@@ -166,18 +171,16 @@ def _warm_decoder() -> bool:
     for encoded in (depth_png16_mm(depth), depth_f32_m(depth)):
         body = {"depth": encoded, "mask": b64(png_bytes(np.ones((24, 32), np.uint8))),
                 "intrinsics": {"fx": 28.0, "fy": 28.0, "cx": 15.5, "cy": 11.5}}
-        ok &= parse_view(json.dumps(body).encode(), "application/json",
-                         max_image_pixels=1 << 20, max_points=1 << 20)[0] == "ok"
+        ok &= parse_view(json.dumps(body).encode(), "application/json", _WARM_LIMITS)[0] == "ok"
     return ok
 
 
 class BodyParser:
-    """Reads and parses view bodies within the memory budgets of :mod:`service.memory`: small
+    """Reads and parses view bodies within the memory budgets of :mod:`service.intake.memory`: small
     ones in a thread, big ones in ``workers`` processes."""
 
-    def __init__(self, workers: int, *, at_once: int = 2, max_body_bytes: int = 32 << 20,
-                 body_memory: int = 1 << 40, decode_memory: int = 1 << 40,
-                 memory_wait_s: float = 30.0, **limits) -> None:
+    def __init__(self, workers: int, *, limits: DecodeLimits, at_once: int, max_body_bytes: int,
+                 body_memory: int, decode_memory: int, memory_wait_s: float) -> None:
         self.workers = workers
         self.limits = limits  # decode_view's: image pixels, points, plausible depth
         self.max_body_bytes = max_body_bytes
@@ -210,17 +213,17 @@ class BodyParser:
         expected = int(length) if length.isdigit() else self.max_body_bytes
         async with self.bodies.hold(body_cost(min(expected, self.max_body_bytes))):
             raw = await request.body()
-            if (problem := too_many_arrays(raw, self.limits.get("max_points", 1 << 40))):
+            if (problem := too_many_arrays(raw, self.limits.max_points)):
                 raise RequestValidationError(
                     [{"loc": ["body", "points"], "msg": problem, "type": "too_long"}])
-            cost = decode_cost(raw, self.limits.get("max_image_pixels", 1 << 40))
+            cost = decode_cost(raw, self.limits.max_image_pixels)
             async with self.decoding.hold(cost):
                 parsed = await self.parse(raw, request.headers.get("content-type"))
                 del raw
                 yield parsed
 
     async def parse(self, raw: bytes, content_type: str | None) -> ParsedView:
-        job = partial(parse_view, raw, content_type, **self.limits)
+        job = partial(parse_view, raw, content_type, self.limits)
         async with self._at_once:
             if len(raw) <= IN_PROCESS_BYTES:
                 answer = await anyio.to_thread.run_sync(job)

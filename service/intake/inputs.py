@@ -23,11 +23,12 @@ from completion.grid import (
     depth_to_points,
     indices_to_points,
 )
+from completion.view import View
 
 # MAX_COORDINATE_M: the largest |coordinate| (metres) accepted in points, depth and transforms:
 # far beyond any depth camera, small enough that fitting a grid cannot overflow
 from grasp_client.wire import MAX_COORDINATE_M, SupportPlane, object_pixels, transform
-from service.schemas import DepthIn, GridIn, ViewIn
+from service.api.schemas import DepthIn, GridIn, ViewIn
 
 #: Voxel pitch (metres) a client-made grid may have: 0.1 mm to 10 m.
 MIN_PITCH_M, MAX_PITCH_M = 1e-4, 10.0
@@ -52,48 +53,46 @@ class InputError(ValueError):
 
 
 @dataclass(frozen=True)
-class DecodedView:
-    """A view as the object's points (a depth image is back-projected here) or a ready grid."""
+class DecodedView(View):
+    """A view decoded and checked at the door: the :class:`completion.view.View` the stream takes
+    (the object's points, a depth image back-projected here, or a ready grid; its pose and
+    plane), plus what only the service uses."""
 
-    points: np.ndarray | None = None  # (n, 3) float64, camera frame, metres
-    grid: VoxelGrid | None = None
-    camera_to_world: np.ndarray | None = None  # (4, 4) float64
-    support_plane: SupportPlane | None = None  # world frame, kept by the session
     background: np.ndarray | None = None  # (m, 3) some of a masked depth image's other pixels
     # (k, 3) camera frame: the pixels that may be obstacles (outside the mask, or the
     # obstacle_mask's), one about every OBSTACLE_PITCH_M at their depth; None: none sent
     others: np.ndarray | None = None
-    check_frames: bool = True  # service.frames checks this view (the body's check_frames)
+    check_frames: bool = True  # service.intake.frames checks this view (the body's check_frames)
     registered: bool | None = None  # the session fuses posed views from now on (None: as it did)
 
-    def add_view_kwargs(self) -> dict:
-        """Keyword arguments for :meth:`completion.stream.CompletionStream.add_view`."""
-        return {"points": self.points, "grid": self.grid, "camera_to_world": self.camera_to_world,
-                "support_plane": self.support_plane}
+
+@dataclass(frozen=True)
+class DecodeLimits:
+    """What a view may hold (the service's settings build it: ``GRASP_MAX_IMAGE_PIXELS``,
+    ``GRASP_MAX_POINTS``, ``GRASP_MAX_DEPTH_MEDIAN_M``, ``GRASP_MAX_POINT_DISTANCE_M``)."""
+
+    max_image_pixels: int
+    max_points: int
+    max_depth_median_m: float
+    max_point_distance_m: float
 
 
-def decode_view(
-    view: ViewIn,
-    *,
-    max_image_pixels: int,
-    max_points: int,
-    max_depth_median_m: float = 5.0,
-    max_point_distance_m: float = 10.0,
-) -> DecodedView:
+def decode_view(view: ViewIn, limits: DecodeLimits) -> DecodedView:
     """Decode and check one view; raises :class:`InputError`.
 
     A depth image is back-projected with :func:`completion.grid.depth_to_points`, exactly as
     ``CompletionStream.add_view(depth=...)`` and the training data do, so that the points can be
     checked like client-sent ones. What a robot integration gets wrong is caught here: a label
-    image as the mask, millimetres as metres (a depth median beyond ``max_depth_median_m``, the
-    object's points beyond ``max_point_distance_m``), intrinsics that are not in pixels or not of
+    image as the mask, millimetres as metres (a depth median beyond ``limits.max_depth_median_m``,
+    the object's points beyond ``limits.max_point_distance_m``), intrinsics that are not in pixels or not of
     this image.
     """
     pose = view.camera_pose  # checked rigid by its type (grasp_client.wire.rigid_pose)
+    max_points, max_point_distance_m = limits.max_points, limits.max_point_distance_m
     if view.support_plane is not None and pose is None:
         raise InputError(("body", "support_plane"),
                          f"{SupportPlane.NEEDS_POSES} (this view has no camera_pose)")
-    posed = {"camera_to_world": pose, "support_plane": view.support_plane,
+    posed = {"camera_to_world": None if pose is None else np.asarray(pose, dtype=np.float64), "support_plane": view.support_plane,
              "check_frames": view.check_frames, "registered": view.registered}
     if view.points is not None:
         if not view.points:
@@ -109,7 +108,7 @@ def decode_view(
     if view.grid is not None:
         return DecodedView(grid=_grid(view.grid), **posed)
     assert view.depth is not None and view.intrinsics is not None  # ViewIn's own check
-    depth = _depth(view.depth, max_image_pixels)  # (H, W) uint16 mm or float32 m, as sent
+    depth = _depth(view.depth, limits.max_image_pixels)  # (H, W) uint16 mm or float32 m, as sent
     _plausible_intrinsics(view.intrinsics, depth.shape)
     mask = None if view.mask is None else _mask(view.mask, depth.shape, view.object_label)
     outside = None  # the pixels that may be obstacles
@@ -127,7 +126,7 @@ def decode_view(
     metres = depth.astype(np.float64)
     if depth.dtype == np.uint16:
         metres /= 1000.0
-    _plausible_depth(metres, mask, max_depth_median_m, view.depth.encoding)
+    _plausible_depth(metres, mask, limits.max_depth_median_m, view.depth.encoding)
     with np.errstate(over="ignore", invalid="ignore"):
         points = depth_to_points(metres, intrinsics, mask)
         background = None if mask is None else _background(metres, intrinsics, mask)
@@ -146,7 +145,7 @@ def _background(metres: np.ndarray, intrinsics: Intrinsics, mask: np.ndarray) ->
     (the table, where the camera sees it), every s-th pixel along both axes."""
     outside = ~mask & np.isfinite(metres) & (metres > 0)
     count = int(outside.sum())
-    if count < 50:  # too little to tell the table by (service.frames); nothing allocated
+    if count < 50:  # too little to tell the table by (service.intake.frames); nothing allocated
         return None
     step = max(1, int(np.ceil(np.sqrt(count / BACKGROUND_POINTS))))
     return _every(step, metres, intrinsics, outside, cleaning=None)[:BACKGROUND_POINTS]

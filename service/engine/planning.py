@@ -39,7 +39,7 @@ import numpy as np
 
 from grasp.defaults import AUTOGRASP_BUDGET
 from grasp_client.wire import SupportPlane
-from service import workers
+from service.intake import workers
 
 log = logging.getLogger(__name__)
 

@@ -56,7 +56,7 @@ from uvicorn.config import Config
 from uvicorn.protocols.http.h11_impl import STATUS_PHRASES, H11Protocol
 from uvicorn.server import ServerState
 
-from service.deps import token_index
+from service.api.auth import token_index
 from service.settings import Settings
 
 #: Seconds a refused connection stays open after its 429, discarding what the client sends, so
@@ -160,7 +160,7 @@ def check_uvicorn(version: str) -> None:
     if ".".join(version.split(".")[:2]) not in TESTED_UVICORN:
         raise SystemExit(
             f"python -m service: uvicorn {version} is installed, but the connection guards "
-            f"(service/connections.py) use uvicorn's H11Protocol internals and were tested with "
+            f"(service/server/connections.py) use uvicorn's H11Protocol internals and were tested with "
             f"uvicorn {', '.join(v + '.x' for v in TESTED_UVICORN)} only; install the locked "
             "set (pip install -c requirements.lock -e .) or test that release and add it to "
             "TESTED_UVICORN")

@@ -1,9 +1,9 @@
 """The session store interface: what the pipeline uses, whichever engine keeps the sessions.
 
 Two engines implement :class:`Store` (docs/design.md §9):
-:class:`service.sqlite_store.SQLiteSessionStore` keeps sessions in one SQLite file (the embedded
-default) and :class:`service.redis_store.RedisSessionStore` keeps them in Redis so that several
-replicas share them (``GRASP_STORE_URL``); :func:`service.sessions.open_store` picks one from the
+:class:`service.store.sqlite_store.SQLiteSessionStore` keeps sessions in one SQLite file (the embedded
+default) and :class:`service.store.redis_store.RedisSessionStore` keeps them in Redis so that several
+replicas share them (``GRASP_STORE_URL``); :func:`service.store.sessions.open_store` picks one from the
 settings.
 
 A session holds the whole ``CompletionStream`` state (model memory, current grid, latest logits,
@@ -45,7 +45,7 @@ POLL_S = 0.05
 
 class NoLease:
     """The hold on a session of a store that one process owns (SQLite): nothing to take. Views
-    of a session queue in :class:`service.sessions.SessionLocks`; the CAS guards the rest."""
+    of a session queue in :class:`service.store.sessions.SessionLocks`; the CAS guards the rest."""
 
     def release(self) -> None:
         pass

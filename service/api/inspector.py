@@ -16,6 +16,7 @@ in the page's URL fragment (``#token=…``), which browsers never send to the se
 from __future__ import annotations
 
 from pathlib import Path as FilePath
+from typing import Annotated
 
 import numpy as np
 import trimesh
@@ -23,26 +24,18 @@ from fastapi import APIRouter, Depends, Request, Response
 from fastapi.responses import FileResponse
 
 from grasp_client.wire import SupportPlane
-from service.deps import ServicesDep, require_token
-from service.routes import (
-    NCandidates,
-    PathId,
-    SupportPlaneQuery,
-    TopK,
-    VerifyQuery,
-    _errors,
-    plan_session,
-)
-from service.schemas import GraspsOut, ObservedOut
+from service.api.depends import PathId, SceneQuery, ServicesDep, require_token, responses
+from service.api.grasps import plan_session
+from service.api.schemas import GraspsOut, ObservedOut
 
-STATIC = FilePath(__file__).resolve().parent / "static" / "inspector"
+STATIC = FilePath(__file__).resolve().parents[1] / "static" / "inspector"
 #: Side of the square drawn for the support plane, in units of the completion's size.
 PLANE_SCALE = 3.0
 
 #: The page (public: a browser cannot send the token with a link); its assets are STATIC.
 page_router = APIRouter()
 #: What the page fetches, with the token as every data route.
-data_router = APIRouter(dependencies=[Depends(require_token)], responses=_errors(401, 413, 422))
+data_router = APIRouter(dependencies=[Depends(require_token)], responses=responses(401, 413, 422))
 
 
 @page_router.get(
@@ -60,7 +53,7 @@ async def view_page(session_id: PathId) -> FileResponse:
 
 
 @data_router.get(
-    "/sessions/{session_id}/observed", response_model=ObservedOut, responses=_errors(404, 409)
+    "/sessions/{session_id}/observed", response_model=ObservedOut, responses=responses(404, 409)
 )
 async def get_observed(session_id: PathId, services: ServicesDep) -> ObservedOut:
     """The latest view's observed voxel centres and the session's obstacle voxels, in its
@@ -80,23 +73,18 @@ async def get_observed(session_id: PathId, services: ServicesDep) -> ObservedOut
     response_class=Response,
     responses={
         200: {"content": {"model/gltf-binary": {}}, "description": "the scene as GLB"},
-        **_errors(404, 409, 503),
+        **responses(404, 409, 503),
     },
 )
 async def get_scene(
     session_id: PathId,
     services: ServicesDep,
     request: Request,
-    top_k: TopK = 5,
-    n_candidates: NCandidates = None,
-    support_plane: SupportPlaneQuery = None,
-    verify: VerifyQuery = None,
+    query: Annotated[SceneQuery, Depends()],
 ) -> Response:
     """The inspector's scene as one GLB file (latest camera frame, metres)."""
-    plan, mesh, snapshot = await plan_session(
-        services, request, session_id, top_k, n_candidates, support_plane, verify
-    )
-    data = await services.infer(scene_glb, plan, mesh, snapshot.observed)
+    planned = await plan_session(services, request, session_id, query)
+    data = await services.infer(scene_glb, planned.answer, planned.mesh, planned.snapshot.observed)
     return Response(
         data,
         media_type="model/gltf-binary",

@@ -14,7 +14,7 @@ a confident grasp in the wrong place. What the views show can refute them:
   the camera has moved (:attr:`FrameChecks.max_object_jump_m`); a refusal there says that this
   view or an earlier one is wrong, since an earlier view was accepted on less evidence.
 
-Each refusal is an :class:`~service.inputs.InputError` (422) naming the field and the mistake
+Each refusal is an :class:`~service.intake.inputs.InputError` (422) naming the field and the mistake
 that would explain it: the checks are run again with each likely mistake undone, and the first
 that makes the view consistent is named. ``GRASP_CHECK_FRAMES=false`` (the service) or
 ``"check_frames": false`` (one view) turns them off for a caller who knows better.
@@ -29,7 +29,7 @@ import numpy as np
 
 from completion.grid import transform_points
 from grasp_client.wire import SupportPlane
-from service.inputs import DecodedView, InputError
+from service.intake.inputs import DecodedView, InputError
 
 #: OpenGL's camera frame (x right, y up, z backward) against OpenCV's (x right, y down, z forward).
 OPENGL_TO_OPENCV = np.diag([1.0, -1.0, -1.0, 1.0])
@@ -47,15 +47,14 @@ FRAMES = ("OpenCV optical: x right, y down, z forward; camera_pose is camera→w
 
 @dataclass(frozen=True)
 class FrameChecks:
-    """The tolerances (metres) of the frame checks (service settings ``GRASP_*``)."""
+    """The tolerances (metres) of the frame checks; the service's settings build it
+    (``GRASP_MAX_CAMERA_DISTANCE_M``, ``GRASP_PLANE_TOLERANCE_M``, ``GRASP_MAX_PLANE_GAP_M``,
+    ``GRASP_MAX_OBJECT_JUMP_M``: :meth:`service.settings.Settings.frame_checks`)."""
 
-    max_camera_distance_m: float = 20.0
-    plane_tolerance_m: float = 0.03
-    max_plane_gap_m: float = 0.3
-    max_object_jump_m: float = 0.2
-
-
-DEFAULT_CHECKS = FrameChecks()
+    max_camera_distance_m: float
+    plane_tolerance_m: float
+    max_plane_gap_m: float
+    max_object_jump_m: float
 
 
 @dataclass(frozen=True)
@@ -67,7 +66,7 @@ class Previous:
 
 
 def check_view(view: DecodedView, plane: SupportPlane | None, previous: Previous | None,
-               limits: FrameChecks = DEFAULT_CHECKS) -> None:
+               limits: FrameChecks) -> None:
     """Refuse ``view`` (:class:`InputError`) when its camera pose or the support plane
     (``plane``: the view's or the session's, world frame) contradict what its
     depth or points show, or what ``previous`` showed."""

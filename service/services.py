@@ -1,4 +1,5 @@
-"""What the routes depend on: the running service's parts, and the bearer-token check.
+"""The running service's parts, as the lifespan builds them (:class:`Services`): the settings,
+the pipeline, the planner, the thread limit, the session locks and the body parser.
 
 A view to an existing session holds the session (:meth:`Services.exclusive`): views of it in
 this replica queue on an asyncio lock, and the store's lock across replicas is polled from the
@@ -9,27 +10,25 @@ left behind delays no other session, and its own views wait at most about one le
 
 from __future__ import annotations
 
-import hmac
 import math
 import time
-from collections.abc import AsyncIterator, Callable, Sequence
+from collections.abc import AsyncIterator, Callable
 from contextlib import asynccontextmanager
 from dataclasses import dataclass
 from functools import partial
-from typing import Annotated, TypeVar
+from typing import TypeVar
 
 import anyio
 import anyio.to_thread
 from anyio import CapacityLimiter
-from fastapi import Depends, HTTPException, Request, status
-from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
+from fastapi import HTTPException, status
 
-from service.parsing import BodyParser
-from service.pipeline import Pipeline
-from service.planning import Planner
-from service.sessions import SessionLocks
+from service.engine.pipeline import Pipeline
+from service.engine.planning import Planner
+from service.intake.parsing import BodyParser
 from service.settings import Settings
-from service.store import POLL_S, WAIT_LEASES
+from service.store.base import POLL_S, WAIT_LEASES
+from service.store.sessions import SessionLocks
 
 T = TypeVar("T")
 
@@ -90,57 +89,4 @@ class Services:
             f"lock blocks its session for GRASP_LOCK_LEASE_S = {lease_s:g} s); send the view "
             "again",
             headers={"Retry-After": str(math.ceil(lease_s))},
-        )
-
-
-def get_services(request: Request) -> Services:
-    return request.app.state.services
-
-
-ServicesDep = Annotated[Services, Depends(get_services)]
-
-_bearer = HTTPBearer(auto_error=False, description="needed when GRASP_TOKEN is set")
-
-
-def token_index(authorization: str | bytes | None, tokens: Sequence[str]) -> int | None:
-    """Which of ``tokens`` an ``Authorization`` header value carries as its bearer token."""
-    if isinstance(authorization, bytes):
-        authorization = authorization.decode("latin-1")
-    scheme, _, value = (authorization or "").partition(" ")
-    if scheme.lower() != "bearer" or not value.strip():
-        return None
-    given = value.strip().encode()
-    found = None
-    for i, token in enumerate(tokens):  # every one compared: the time says nothing of which
-        if hmac.compare_digest(given, token.encode()) and found is None:
-            found = i
-    return found
-
-
-def token_problem(authorization: str | None, tokens: Sequence[str]) -> str | None:
-    """Why an ``Authorization`` header value carries none of ``tokens`` (None when it does)."""
-    scheme, _, value = (authorization or "").partition(" ")
-    if scheme.lower() != "bearer" or not value:
-        return "missing bearer token: send the header 'Authorization: Bearer <token>'"
-    if token_index(authorization, tokens) is None:
-        return "wrong bearer token: send the token the server was started with (GRASP_TOKEN)"
-    return None
-
-
-def require_token(
-    services: ServicesDep,
-    credentials: Annotated[HTTPAuthorizationCredentials | None, Depends(_bearer)],
-) -> None:
-    """401 unless the request carries ``Authorization: Bearer <GRASP_TOKEN>`` (when one is set).
-
-    :class:`service.middleware.TokenGate` has already checked this before the body was read; this
-    dependency declares the scheme in the OpenAPI document and guards in-process callers."""
-    tokens = services.settings.tokens()
-    if not tokens:
-        return
-    header = None if credentials is None else f"{credentials.scheme} {credentials.credentials}"
-    problem = token_problem(header, tokens)
-    if problem is not None:
-        raise HTTPException(
-            status.HTTP_401_UNAUTHORIZED, problem, headers={"WWW-Authenticate": "Bearer"}
         )

@@ -1,8 +1,8 @@
 """The SQLite session store, the embedded default: :class:`SQLiteSessionStore` implements the
-:class:`service.store.Store` interface on one SQLite file (one row per session), in WAL mode, so a
+:class:`service.store.base.Store` interface on one SQLite file (one row per session), in WAL mode, so a
 committed view survives a killed process. Writes are compare-and-swap on the view count (see
-:mod:`service.store`). :mod:`service.redis_store` is the other implementation;
-:func:`service.sessions.open_store` picks one from the settings.
+:mod:`service.store.base`). :mod:`service.store.redis_store` is the other implementation;
+:func:`service.store.sessions.open_store` picks one from the settings.
 """
 
 from __future__ import annotations
@@ -14,7 +14,7 @@ from collections.abc import Callable
 from contextlib import closing
 from pathlib import Path
 
-from service.store import ConcurrentUpdate, SessionNotFound, SessionRecord, Store
+from service.store.base import ConcurrentUpdate, SessionNotFound, SessionRecord, Store
 
 log = logging.getLogger(__name__)
 

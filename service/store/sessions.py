@@ -1,7 +1,7 @@
 """The store the settings name, and session locks: :func:`open_store` picks
-:class:`service.sqlite_store.SQLiteSessionStore` (one SQLite file, the embedded default) or
-:class:`service.redis_store.RedisSessionStore` for ``GRASP_STORE_URL``. Writes are compare-and-swap
-on the view count (see :mod:`service.store`); within one process :class:`SessionLocks` queues the
+:class:`service.store.sqlite_store.SQLiteSessionStore` (one SQLite file, the embedded default) or
+:class:`service.store.redis_store.RedisSessionStore` for ``GRASP_STORE_URL``. Writes are compare-and-swap
+on the view count (see :mod:`service.store.base`); within one process :class:`SessionLocks` queues the
 ``POST /views`` of a session so that none has to retry.
 """
 
@@ -13,9 +13,9 @@ from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
 from typing import TYPE_CHECKING
 
-from service.redis_store import RedisSessionStore
-from service.sqlite_store import SQLiteSessionStore
-from service.store import Store
+from service.store.base import Store
+from service.store.redis_store import RedisSessionStore
+from service.store.sqlite_store import SQLiteSessionStore
 
 if TYPE_CHECKING:
     from service.settings import Settings

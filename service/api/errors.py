@@ -12,11 +12,11 @@ from starlette.routing import compile_path
 
 from completion.mesh import EmptyMeshError
 from completion.stream import NoObjectError
-from service.inputs import InputError
-from service.parsing import BODY_EXPECTED, capped, field_hint
-from service.pipeline import ModelMismatch, TooManyViews
-from service.planning import ClientGone, PlannerBusy
-from service.store import ConcurrentUpdate, SessionNotFound, StoreFull
+from service.engine.pipeline import ModelMismatch, TooManyViews
+from service.engine.planning import ClientGone, PlannerBusy
+from service.intake.inputs import InputError
+from service.intake.parsing import BODY_EXPECTED, capped, field_hint
+from service.store.base import ConcurrentUpdate, SessionNotFound, StoreFull
 
 
 def install(app: FastAPI) -> None:
@@ -72,7 +72,7 @@ _BODY_HINTS = {
 async def _validation_error(request: Request, exc: RequestValidationError) -> JSONResponse:
     """FastAPI's 422, without echoing the (possibly megabytes of) input back, with what was
     expected where the body is not a JSON object at all, and at most
-    :data:`service.parsing.MAX_ERRORS` errors (then a count of the rest)."""
+    :data:`service.intake.parsing.MAX_ERRORS` errors (then a count of the rest)."""
     detail = []
     for e in capped(list(exc.errors())):
         kind = e.get("type", "")

@@ -33,7 +33,7 @@ from contextlib import contextmanager
 
 import redis
 
-from service.store import (
+from service.store.base import (
     LEASE_S,
     POLL_S,
     WAIT_LEASES,
@@ -130,7 +130,7 @@ def _renew(
 
 
 class RedisSessionStore(Store):
-    """The :class:`~service.store.Store` interface on a Redis server (redis-py)."""
+    """The :class:`~service.store.base.Store` interface on a Redis server (redis-py)."""
 
     def __init__(
         self,

@@ -15,7 +15,7 @@ from fastapi.responses import JSONResponse
 from starlette.requests import ClientDisconnect
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
-from service.deps import token_problem
+from service.api.auth import token_problem
 
 log = logging.getLogger(__name__)
 
@@ -30,7 +30,7 @@ class TokenGate:
     not carry it (a tokenless 30 MB upload is refused without parsing or keeping a byte of it).
 
     An answer sent before the body was read says ``Connection: close``: the server
-    (:mod:`service.connections`) discards the rest of the body, within bounds, then closes, so a
+    (:mod:`service.server.connections`) discards the rest of the body, within bounds, then closes, so a
     client that reads only after sending (urllib, requests) sees the answer and not a reset."""
 
     def __init__(self, app: ASGIApp, *, tokens: Sequence[str]) -> None:

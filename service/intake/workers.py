@@ -20,7 +20,7 @@ def start(niceness: int = 0) -> None:
     """A pool's initializer: lower the worker's CPU priority by ``niceness`` (the planners yield
     to the server's own threads), free memory back to the system when arrays are freed, and end
     the worker when its parent is gone."""
-    from service.memory import return_freed_memory
+    from service.intake.memory import return_freed_memory
 
     if niceness:
         os.nice(niceness)

@@ -1,6 +1,6 @@
 """The API document: FastAPI's, plus what the code checks that FastAPI cannot see.
 
-``POST /views`` reads its body itself (off the event loop, :mod:`service.parsing`), so the
+``POST /views`` reads its body itself (off the event loop, :mod:`service.intake.parsing`), so the
 document gets the ViewIn schema added, with ViewIn's own model validator written as JSON Schema
 (exactly one of points, depth with intrinsics, or grid; a support plane needs a camera pose, an
 object label a mask; points in front of the camera) and the limits of this server's settings;
@@ -12,8 +12,8 @@ from __future__ import annotations
 from fastapi import FastAPI
 from fastapi.openapi.utils import get_openapi
 
-from service.inputs import MAX_COORDINATE_M
-from service.schemas import ViewIn
+from service.api.schemas import ViewIn
+from service.intake.inputs import MAX_COORDINATE_M
 from service.settings import Settings
 
 
@@ -78,7 +78,7 @@ def _view_schema(view: dict, settings: Settings) -> dict:
 
 def _repeated_query(document: dict) -> None:
     """Every operation with query parameters may answer 400: one of them given twice
-    (:class:`service.middleware.QueryOnce`)."""
+    (:class:`service.api.middleware.QueryOnce`)."""
     for methods in document.get("paths", {}).values():
         for operation in methods.values():
             if any(p.get("in") == "query" for p in operation.get("parameters", [])):
