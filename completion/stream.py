@@ -47,9 +47,10 @@ from completion.view import View
 from grasp_client.wire import SupportPlane
 
 DEFAULT_THRESHOLD = 0.5
-#: The other objects a session's views showed (obstacles to the planner, :mod:`grasp.search.obstacles`)
-#: are kept as world-frame voxels of :data:`completion.grid.OBSTACLE_PITCH_M`, at most this many
-#: (the nearest to the object's latest seen points are kept).
+#: The other objects a session's views showed (obstacles to the planner,
+#: :mod:`grasp.search.obstacles`) are kept as world-frame voxels of
+#: :data:`completion.grid.OBSTACLE_PITCH_M`, at most this many (the nearest to the object's latest
+#: seen points are kept).
 MAX_OBSTACLE_VOXELS = 50_000
 
 

@@ -14,13 +14,12 @@ sessions in ``./grasp_store.sqlite``; every setting is a ``GRASP_*`` environment
         httpx.post("http://127.0.0.1:8000/views", json=body | {"session_id": sid})
     grasp = httpx.get("http://127.0.0.1:8000/grasp", params={"session_id": sid}, timeout=60)
 
-Modules: ``app`` (factory, lifespan) · ``errors`` (exceptions as 4xx) · ``middleware`` (token, body
-limit) · ``openapi`` (the API document) · ``routes`` · ``schemas`` (request and response bodies) ·
-``settings`` · ``deps`` (route dependencies) · ``inputs`` (decoding and checking views) ·
-``memory`` (byte budgets of view bodies) · ``pipeline`` (stream step, completion, mesh) ·
-``planning`` (grasp planning in worker processes) · ``store`` (the session store interface) ·
-``sessions`` (SQLite store) · ``redis_store`` (Redis store, for replicas) · ``inspector`` (the 3-D
-page) · ``load`` (load generator, and ``scene_views``: simulated scenes as request bodies). The
-Python client a robot program uses, and the wire types the service shares with it, are the
-``grasp_client`` package (``clients/python/``).
+Stages, lowest first (docs/design.md §2): ``intake`` (bodies parsed off the event loop, their byte
+budgets, views decoded and their frames checked) · ``settings`` · ``store`` (the interface, SQLite,
+Redis, locks) · ``engine`` (stream step, completion, mesh; planner workers) · ``services`` (what the
+lifespan builds) · ``api`` (one module per resource, schemas, errors, the API document, middleware,
+token checks) · ``app`` (factory, lifespan) · ``server`` (connection guards) · ``load`` (load
+generator, and ``scene_views``: simulated scenes as request bodies). The Python client a robot
+program uses, and the wire types the service shares with it, are the ``grasp_client`` package
+(``clients/python/``).
 """

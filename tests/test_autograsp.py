@@ -426,7 +426,8 @@ def test_bad_input_raises():
 
 def test_grasp_modules_do_not_import_torch():
     code = (
-        "import sys, grasp.hand.autograsp, grasp.planner, grasp.hand.quality, grasp.evaluate.picture, grasp.evaluate.render, "
+        "import sys, grasp.hand.autograsp, grasp.planner, grasp.hand.quality, "
+        "grasp.evaluate.picture, grasp.evaluate.render, "
         "hands.barrett.urdf; assert 'torch' not in sys.modules, 'torch imported'"
     )
     subprocess.run([sys.executable, "-c", code], check=True, cwd=GOLDEN_PATH.parents[2])
@@ -435,7 +436,8 @@ def test_grasp_modules_do_not_import_torch():
 def test_the_planner_does_not_import_pybullet():
     """The planner's workers use the fcl scene (grasp.hand.collision); pybullet is for pictures and
     physics (grasp.evaluate.picture, grasp.physics)."""
-    code = ("import sys, grasp.planner, grasp.hand.autograsp, grasp.hand.collision, grasp.search.candidates, "
+    code = ("import sys, grasp.planner, grasp.hand.autograsp, grasp.hand.collision, "
+            "grasp.search.candidates, "
             "grasp.hand.quality; assert 'pybullet' not in sys.modules, 'pybullet imported'")
     subprocess.run([sys.executable, "-c", code], check=True, cwd=GOLDEN_PATH.parents[2])
 

@@ -1,5 +1,6 @@
-"""Connections to a real ``python -m service`` (service/server/connections.py): early answers that every
-client reads, deadlines for a request's head and body, a cap on connections per client address."""
+"""Connections to a real ``python -m service`` (service/server/connections.py): early answers that
+every client reads, deadlines for a request's head and body, a cap on connections per client
+address."""
 
 from __future__ import annotations
 

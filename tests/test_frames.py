@@ -1,7 +1,7 @@
-"""A wrong frame never becomes a confident grasp (service/intake/frames.py): the seven frame mistakes a
-robot integration makes, and the four views that show nothing, each a 422 naming the mistake,
-through the real client against a real ``python -m service`` and as raw HTTP; the correct views
-of the same scene give the same grasp with the checks on and off."""
+"""A wrong frame never becomes a confident grasp (service/intake/frames.py): the seven frame
+mistakes a robot integration makes, and the four views that show nothing, each a 422 naming the
+mistake, through the real client against a real ``python -m service`` and as raw HTTP; the correct
+views of the same scene give the same grasp with the checks on and off."""
 
 from __future__ import annotations
 

@@ -1,5 +1,5 @@
 """One truth for planner and executor: a grasp planned on a table is executed the way it was
-planned (guarded, :func:`grasp.physics.lift_test`), low and heavy objects, and the lift model
+planned (guarded, :func:`grasp.physics.lift.lift_test`), low and heavy objects, and the lift model
 that ranks grasps on a table."""
 
 from __future__ import annotations
@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from grasp.physics import lift_test
+from grasp.physics.lift import lift_test
 from grasp.physics.settings import DEFAULT_SETTINGS
 from grasp.planner import plan
 from grasp.ranking.rank import HOLD_THRESHOLD
@@ -76,8 +76,9 @@ def test_a_grasp_predicted_to_drop_is_a_failure_that_says_so():
 
 
 def test_the_lift_model_is_what_its_data_and_command_give(tmp_path):
-    """The committed coefficients are `python -m grasp.evaluate.lift_training train` on the committed data
-    (training-split objects only), and the features are the ones it was trained on."""
+    """The committed coefficients are `python -m grasp.evaluate.lift_training train` on the
+    committed data (training-split objects only), and the features are the ones it was trained
+    on."""
     from completion.objects import object_ids
     from grasp.evaluate.lift_training import main
     from grasp.ranking.lift_model import DATA_PATH, FEATURES, MODEL_PATH

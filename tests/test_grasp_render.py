@@ -1,4 +1,5 @@
-"""grasp.evaluate.render: pictures of the hand on the mesh (pybullet TinyRenderer) and the command line."""
+"""grasp.evaluate.render: pictures of the hand on the mesh (pybullet TinyRenderer) and the command
+line."""
 
 from __future__ import annotations
 

@@ -1,5 +1,5 @@
-"""grasp.evaluate.picture and grasp.hand.collision: the pybullet GraspWorld and its fcl mirror CollisionScene agree
-with each other."""
+"""grasp.evaluate.picture and grasp.hand.collision: the pybullet GraspWorld and its fcl mirror
+CollisionScene agree with each other."""
 
 from __future__ import annotations
 

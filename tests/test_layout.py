@@ -149,7 +149,8 @@ def test_every_module_has_a_stage_and_the_top_levels_stay_small() -> None:
 
 def test_the_physics_check_imports_no_planner() -> None:
     assert not [(m, t) for m, targets in _graph().items() if m.startswith("grasp.physics")
-                for t in targets if t.startswith(("grasp.planner", "grasp.search", "grasp.ranking"))]
+                for t in targets
+                if t.startswith(("grasp.planner", "grasp.search", "grasp.ranking"))]
 
 
 #: Modules of grasp/ that hold constants only (they import nothing), which settings may name.
@@ -171,7 +172,8 @@ def test_the_wire_types_load_no_http_client() -> None:
     import subprocess
     import sys
 
-    code = ("import sys, completion.stream, completion.scenes, hands.barrett, service.intake.inputs; "
+    code = ("import sys, completion.stream, completion.scenes, hands.barrett, "
+            "service.intake.inputs; "
             "assert 'httpx' not in sys.modules, 'httpx loaded'; "
             "from grasp_client import GraspClient, SupportPlane; "
             "assert 'httpx' in sys.modules and GraspClient.__module__ == 'grasp_client.client'")

@@ -1,6 +1,6 @@
-"""service.intake.memory: what a view body and its decoding reserve, the byte budgets that make requests
-wait (then 503), and, against a real server, rounds of concurrent bombs of each depth encoding
-that stay within 200 MB of idle and give the memory back."""
+"""service.intake.memory: what a view body and its decoding reserve, the byte budgets that make
+requests wait (then 503), and, against a real server, rounds of concurrent bombs of each depth
+encoding that stay within 200 MB of idle and give the memory back."""
 
 from __future__ import annotations
 

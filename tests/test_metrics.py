@@ -1,4 +1,5 @@
-"""grasp.evaluate.metrics: Jaccard, F-score@d (Tatarchenko et al. 2019) and the grasp joint error."""
+"""grasp.evaluate.metrics: Jaccard, F-score@d (Tatarchenko et al. 2019) and the grasp joint
+error."""
 
 import numpy as np
 import pytest

@@ -1,5 +1,5 @@
-"""Neighbours as obstacles (grasp.search.obstacles, issue 61): voxels the hand keeps clear of while it
-approaches and closes, the planner refusing grasps that would touch them, and the lift test
+"""Neighbours as obstacles (grasp.search.obstacles, issue 61): voxels the hand keeps clear of while
+it approaches and closes, the planner refusing grasps that would touch them, and the lift test
 with the neighbours as dynamic bodies on the table."""
 
 from __future__ import annotations
@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from grasp.physics import lift_test
+from grasp.physics.lift import lift_test
 from grasp.planner import plan
 from grasp.search.obstacles import Obstacles, sweep_hit
 from grasp_client.wire import SupportPlane

@@ -12,17 +12,12 @@ import pybullet
 import pytest
 import trimesh
 
+from grasp.cli import main as grasp_main
 from grasp.hand.autograsp import autograsp
-from grasp.physics import (
-    HOLD_TOLERANCE_M,
-    DynamicWorld,
-    LiftResult,
-    LiftSettings,
-    convex_decomposition,
-    lift_test,
-    main,
-    mass_properties,
-)
+from grasp.physics.body import convex_decomposition, mass_properties
+from grasp.physics.lift import lift_test
+from grasp.physics.settings import HOLD_TOLERANCE_M, LiftResult, LiftSettings
+from grasp.physics.world import DynamicWorld
 
 BOX_EXTENTS = (0.06, 0.05, 0.08)  # along the approach, across the fingers, vertical (m)
 
@@ -202,7 +197,8 @@ def test_command_line_plans_and_lift_tests(tmp_path, capsys, monkeypatch):
     monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
     path = tmp_path / "box.stl"
     trimesh.creation.box(extents=BOX_EXTENTS).export(path)
-    code = main([str(path), "--candidates", "6", "--top-k", "1"])  # planned on itself, shaken
+    # planned on itself, shaken
+    code = grasp_main(["lift", str(path), "--candidates", "6", "--top-k", "1"])
     out = capsys.readouterr().out
     assert "planned 1 grasp(s)" in out
     assert "held 1/1" in out

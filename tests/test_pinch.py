@@ -13,7 +13,7 @@ import trimesh
 from grasp.hand.autograsp import autograsp
 from grasp.hand.pinch import TABLE_PINCH, TIP_CLEARANCE_M, depth, pinch_height, profile, rise
 from grasp.hand.table import hand_clearance
-from grasp.physics import lift_test
+from grasp.physics.lift import lift_test
 from grasp.planner import plan
 from grasp.search.candidates import table_candidates
 from grasp_client.wire import Grasp, SupportPlane, WristRise

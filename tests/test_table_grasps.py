@@ -237,7 +237,7 @@ def test_no_planned_grasp_reaches_below_the_table_on_random_objects():
 
 
 def test_a_low_box_gets_a_top_down_grasp_that_lifts_it_off_the_table():
-    from grasp.physics import lift_test
+    from grasp.physics.lift import lift_test
 
     box = low_box()
     grasps = plan(box, n_candidates=64, top_k=10, support_plane=FLOOR)

@@ -1,5 +1,6 @@
-"""Grasps tried in physics before they are returned (grasp/physics/verify.py, plan(..., verify=N)), the lift
-test standing on a support plane in any frame, and verification through the real service."""
+"""Grasps tried in physics before they are returned (grasp/physics/verify.py, plan(..., verify=N)),
+the lift test standing on a support plane in any frame, and verification through the real
+service."""
 
 from __future__ import annotations
 
@@ -12,8 +13,8 @@ import pytest
 import trimesh
 
 from grasp.hand.table import to_upright
-from grasp.physics import lift_test
 from grasp.physics import verify as V
+from grasp.physics.lift import lift_test
 from grasp.planner import plan
 from grasp_client.wire import SupportPlane
 

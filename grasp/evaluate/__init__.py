@@ -7,12 +7,12 @@ is scored against its ground truth:
 
 - Jaccard on the thresholded 40³ grids, and F-score@1% / @2% of the grid side of the meshed
   prediction against the true objects' surfaces inside the grid (independent dense samples;
-  :mod:`grasp.evaluate.metrics`), averaged over the views of a sequence and then over sequences (Tables I
-  and II), with the F-score ``ceiling``: the 40³ target itself scored the same way;
+  :mod:`grasp.evaluate.metrics`), averaged over the views of a sequence and then over sequences
+  (Tables I and II), with the F-score ``ceiling``: the 40³ target itself scored the same way;
 - grasp joint error on the final view of the single-object conditions (Table III): plan on the
   predicted mesh, re-grasp the *true object mesh* placed in the latest camera frame from the same
-  pre-grasp pose (:func:`grasp.evaluate.metrics.grasp_joint_error`). The paper swaps in "the ground truth
-  mesh"; we take the object's own mesh rather than a marching-cubes mesh of the 40³ target so
+  pre-grasp pose (:func:`grasp.evaluate.metrics.grasp_joint_error`). The paper swaps in "the ground
+  truth mesh"; we take the object's own mesh rather than a marching-cubes mesh of the 40³ target so
   that the error measures the completion, not the voxelisation of the ground truth.
 
 Rows: the six models of the paper (single_view, mvp, mvt, lstm, mvp3, mvp6) and three

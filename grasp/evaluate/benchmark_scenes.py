@@ -9,7 +9,7 @@ model and, as the service receives it with its camera pose, into a
 :class:`completion.stream.CompletionStream` with the table as its support plane (the completion
 is cut at it). Rows, each the top-1 grasp planned with the table as an obstacle and executed by
 the lift test on the *true* object standing on the table (guarded approach, close, lift 10 cm,
-shake; :func:`grasp.physics.lift_test`):
+shake; :func:`grasp.physics.lift.lift_test`):
 
 - ``true_mesh``: planned on the true mesh itself (what a perfect completion would get);
 - ``mvp_1view`` / ``mvp_4views``: MVP's completion of the first view / of the 4 views, the camera
@@ -25,7 +25,7 @@ results.json's ``grasp_benchmark[row] = {"held", "tested", "ci95": [lo, hi], "re
 of tested with the Wilson score interval, and how often each failure reason occurred; and
 ``grasp_benchmark_objects``, one record per object (:func:`object_record`): its id, size and mass,
 and per row whether it held, why, the grasp's kind, the planned and the executed finger joints.
-The planner plans the execution (guarded, :func:`grasp.physics.lift_test`), so on the true mesh
+The planner plans the execution (guarded, :func:`grasp.physics.lift.lift_test`), so on the true mesh
 the two agree but for the dynamics; where they differ by much, the plan was not what happened.
 """
 
@@ -206,9 +206,9 @@ def run_object(scene: Scene, models: dict, rows, *, candidates: int, seed: int,
     "verified" (tried: how many grasps were lift-tested before the answer).
 
     The planner sees only the row's mesh (a completion, in its camera frame, for the completion
-    rows: never the true object or its mass); the referee, :func:`grasp.physics.lift_test` on
+    rows: never the true object or its mass); the referee, :func:`grasp.physics.lift.lift_test` on
     the true object, runs after it with its own seed."""
-    from grasp.physics import lift_test
+    from grasp.physics.lift import lift_test
     from grasp.planner import plan
 
     out = {}

@@ -11,7 +11,7 @@ as in the benchmark; every view keeps the target's mask and the pixels of the ne
 
 Rows, each the top-1 grasp of the target planned with the table, executed by the lift test on
 the true target with the true neighbours as dynamic bodies on the table
-(:func:`grasp.physics.lift_test`); success is the target held **and** no neighbour moved more
+(:func:`grasp.physics.lift.lift_test`); success is the target held **and** no neighbour moved more
 than :data:`MOVE_LIMIT_M` or tilted more than :data:`TILT_LIMIT_DEG`:
 
 - ``true_meshes``: planned on the true target, the true neighbours as obstacles;
@@ -217,7 +217,7 @@ def run_scene(scene: ClutterScene, models: dict, rows, *, candidates: int, seed:
     scene. The completion rows plan on MVP's completion in its last
     camera's frame, with the obstacles moved there; the referee runs on the true objects."""
     from grasp.evaluate.benchmark_scenes import completion_mesh
-    from grasp.physics import lift_test
+    from grasp.physics.lift import lift_test
     from grasp.planner import plan
 
     target_scene = _as_benchmark_scene(scene)

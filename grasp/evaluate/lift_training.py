@@ -1,11 +1,12 @@
 """The lift model's data and training (:mod:`grasp.ranking.lift_model` applies it).
 
-``python -m grasp.evaluate.lift_training collect`` rests training-split objects (never the benchmark's,
-which are held out) on a table in a stable pose, plans on the true mesh with the table, and
+``python -m grasp.evaluate.lift_training collect`` rests training-split objects (never the
+benchmark's, which are held out) on a table in a stable pose, plans on the true mesh with the table,
+and
 lift-tests every force-closure grasp the planner ranks (guarded execution, as the benchmark):
-``grasp/ranking/lift_model_data.csv``, one row per grasp. ``python -m grasp.evaluate.lift_training train`` fits
-the logistic regression (scikit-learn) and writes ``grasp/ranking/lift_model.json`` with its
-cross-validated figures (grouped by object).
+``grasp/ranking/lift_model_data.csv``, one row per grasp. ``python -m grasp.evaluate.lift_training
+train`` fits the logistic regression (scikit-learn) and writes ``grasp/ranking/lift_model.json``
+with its cross-validated figures (grouped by object).
 """
 
 from __future__ import annotations
@@ -27,7 +28,7 @@ from grasp_client.wire import SupportPlane
 def _collect_one(job: tuple[int, str, int]) -> list[dict]:
     from completion.objects import load_object
     from completion.scenes import stable_pose
-    from grasp.physics import lift_test
+    from grasp.physics.lift import lift_test
     from grasp.planner import plan
 
     index, object_id, seed = job

@@ -356,9 +356,9 @@ def grasp_joint_error(
     Plan on the prediction (:func:`grasp.planner.plan`, ``n_candidates`` seeded candidates) and
     take the best grasp's palm orientation, approach line and spread. From its pre-grasp pose
     (backed off ``backoff`` metres along the approach axis, hand open) approach and autograsp
-    the truth (:func:`grasp.hand.autograsp.regrasp`), and, with the very same protocol, the prediction.
-    Grasping both sides from the same pre-grasp pose makes the error exactly 0 for identical
-    shapes and leaves only the geometric difference; the planned grasp itself is what the
+    the truth (:func:`grasp.hand.autograsp.regrasp`), and, with the very same protocol, the
+    prediction. Grasping both sides from the same pre-grasp pose makes the error exactly 0 for
+    identical shapes and leaves only the geometric difference; the planned grasp itself is what the
     re-grasp on the prediction reproduces whenever the approach line is clear. The planner ranks
     force-closure grasps first; when none of the candidates reaches force closure its best
     attempt is still compared (``planned.success`` is then False), as GraspIt!'s planner would

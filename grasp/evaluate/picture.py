@@ -2,12 +2,12 @@
 
 :class:`GraspWorld` owns its pybullet client (DIRECT, one per object). The object is a static
 concave triangle mesh, the hand is loaded from its generated URDF and placed kinematically (base
-pose and joint states reset, no dynamics). The hand is loaded as the lift test loads it (:func:`grasp.physics.hand.load_hand`). Used for
-pictures (:mod:`grasp.evaluate.render`) and to cross-check the fcl collision scene
-the planner uses (:mod:`grasp.hand.collision`, built from the same
-:class:`hands.barrett.HandKinematics`). pybullet tuples become named records
-(:class:`grasp.physics.hand.JointInfo`, :class:`ClosestPoint`), and :meth:`GraspWorld.saved` restores the world
-between trials.
+pose and joint states reset, no dynamics). The hand is loaded as the lift test loads it
+(:func:`grasp.physics.hand.load_hand`). Used for pictures (:mod:`grasp.evaluate.render`) and to
+cross-check the fcl collision scene the planner uses (:mod:`grasp.hand.collision`, built from the
+same :class:`hands.barrett.HandKinematics`). pybullet tuples become named records
+(:class:`grasp.physics.hand.JointInfo`, :class:`ClosestPoint`), and :meth:`GraspWorld.saved`
+restores the world between trials.
 """
 
 from __future__ import annotations

@@ -203,7 +203,7 @@ class Evaluator:
         grasp planned on the true mesh. Every grasp is executed the same way, on the true object
         with a guarded approach (move in until contact), so the true-mesh row differs from the
         model rows only in the shape it was planned on."""
-        from grasp.physics import lift_test
+        from grasp.physics.lift import lift_test
         from grasp.planner import plan
 
         s = self.settings

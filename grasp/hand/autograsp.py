@@ -23,8 +23,8 @@ The fingers do not touch each other in this model (finger–finger and finger–
 not checked; at spread 0 fingers 1/2 pass beside finger 3), so each finger's motion depends only
 on the object and the three close independently, which is the same as closing them together.
 
-The stepping search, the approach and a finger's closing live in :mod:`grasp.hand.closing`; the table
-pinch's closing in :mod:`grasp.hand.pinch`. Collision queries go to
+The stepping search, the approach and a finger's closing live in :mod:`grasp.hand.closing`; the
+table pinch's closing in :mod:`grasp.hand.pinch`. Collision queries go to
 :class:`grasp.hand.collision.CollisionScene` (python-fcl): a boolean overlap test
 per moving link with early exit, ~10-40 µs. Speed: a convex polytope around the object (k-DOP)
 gives a lower bound d on the distance to the object (fcl GJK), and no point of a moving link
@@ -139,8 +139,9 @@ def autograsp(
     Parameters
     ----------
     mesh : trimesh.Trimesh or CollisionScene
-        The object in world coordinates (metres). Pass a :class:`grasp.hand.collision.CollisionScene` to
-        reuse one collision model for many grasps on the same mesh.
+        The object in world coordinates (metres). Pass a
+        :class:`grasp.hand.collision.CollisionScene` to reuse one collision model for many grasps on
+        the same mesh.
     palm_pose : (4, 4) float
         Initial palm→world pose; +z is the approach direction.
     spread_deg : float
@@ -160,15 +161,15 @@ def autograsp(
         The table (world frame): an obstacle for the approach and the fingers. Default: the
         scene's own (none for a mesh).
     pinch : bool
-        A table pinch (:mod:`grasp.hand.pinch`): the palm faces the table (+z along −n) and rises while
-        the fingers close, keeping the tips on the table. Needs a support plane. ``max_travel``
-        should end the approach where the open hand's lowest point is
-        :data:`grasp.hand.pinch.TIP_CLEARANCE_M` above the table: an approach that touches the object
-        first is a failure (too tall to pinch from there).
+        A table pinch (:mod:`grasp.hand.pinch`): the palm faces the table (+z along −n) and rises
+        while the fingers close, keeping the tips on the table. Needs a support plane.
+        ``max_travel`` should end the approach where the open hand's lowest point is
+        :data:`grasp.hand.pinch.TIP_CLEARANCE_M` above the table: an approach that touches the
+        object first is a failure (too tall to pinch from there).
     preshape_deg : float
         The fingers' DOF while the hand approaches (0: open), from which they close: a hand
-        pre-shaped among other objects (:mod:`grasp.search.obstacles`) is narrower than the open one,
-        whose fingertips reach 16 cm from the palm's axis.
+        pre-shaped among other objects (:mod:`grasp.search.obstacles`) is narrower than the open
+        one, whose fingertips reach 16 cm from the palm's axis.
 
     Returns
     -------

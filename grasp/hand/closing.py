@@ -1,6 +1,6 @@
-"""The search under the autograsp (:mod:`grasp.hand.autograsp`, :mod:`grasp.hand.pinch`): where moving links
-first touch the object or the table along a 1-D motion, the approach along the palm's +z, and one
-finger's closing by the Barrett rules (coupled, then breakaway).
+"""The search under the autograsp (:mod:`grasp.hand.autograsp`, :mod:`grasp.hand.pinch`): where
+moving links first touch the object or the table along a 1-D motion, the approach along the palm's
++z, and one finger's closing by the Barrett rules (coupled, then breakaway).
 
 :class:`Search` steps a motion parameter and bisects the last step to the first contact; a
 convex polytope around the object bounds the distance to it, so far from it the steps are as long

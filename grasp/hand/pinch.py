@@ -67,7 +67,8 @@ def faces_table(palm_pose: np.ndarray, plane: SupportPlane) -> bool:
 
 def pinch_height(params: BarrettParams = BH8_282) -> float:
     """Height (m) of the palm face above the table where a table pinch starts closing: objects
-    lower than this get table pinch candidates (:func:`grasp.search.candidates.table_candidates`)."""
+    lower than this get table pinch candidates
+    (:func:`grasp.search.candidates.table_candidates`)."""
     return depth(0.0, params) + TIP_CLEARANCE_M
 
 

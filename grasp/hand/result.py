@@ -62,8 +62,8 @@ class GraspResult:
     contacts : tuple of Contact
         Link name, world point and inward normal of each contact.
     epsilon, volume : float
-        Ferrari–Canny quality of the L1 grasp wrench space (``grasp.hand.quality``); −1 and 0 without
-        force closure.
+        Ferrari–Canny quality of the L1 grasp wrench space (``grasp.hand.quality``); −1 and 0
+        without force closure.
     force_epsilon : float
         The epsilon of pure forces through the centre of mass (``grasp.hand.quality``): how well the
         grasp holds the object's weight and inertia; −1 without force closure.
@@ -83,8 +83,8 @@ class GraspResult:
         On a table, the planner's estimate that the grasp holds when the object is lifted
         (:mod:`grasp.ranking.lift_model`); NaN where it was not estimated.
     verification : grasp_client.wire.Verification or None
-        What lift-testing it on the planned mesh saw (``plan(..., verify=N)``, :mod:`grasp.physics.verify`);
-        None when the plan verified nothing.
+        What lift-testing it on the planned mesh saw (``plan(..., verify=N)``,
+        :mod:`grasp.physics.verify`); None when the plan verified nothing.
     wrist_rise : grasp_client.wire.WristRise or None
         A table pinch's (:mod:`grasp.hand.pinch`): the palm's rise along its −z against the closing
         fingers' DOF; ``palm_pose`` is where closing starts, :attr:`end_palm_pose` where it ends

@@ -3,10 +3,10 @@
 :class:`SupportPlane` (defined with the wire types in :mod:`grasp_client.wire`, where it is parsed
 and checked) is the surface (n·x + d = 0, n up, the object on its upper side): given on ``POST
 /views`` or ``GET /grasp``, it cuts the completion (:mod:`completion.stream`) and is an obstacle to
-the hand as in GraspIt! (an fcl halfspace in :class:`grasp.hand.collision.CollisionScene`; the approach
-and every finger stop at it, :mod:`grasp.hand.autograsp`). The functions below place the hand's
-collision primitives by its kinematics and measure how far the hand of a grasp stays above the
-plane: the planner drops any grasp that crosses it (:func:`crosses`).
+the hand as in GraspIt! (an fcl halfspace in :class:`grasp.hand.collision.CollisionScene`; the
+approach and every finger stop at it, :mod:`grasp.hand.autograsp`). The functions below place the
+hand's collision primitives by its kinematics and measure how far the hand of a grasp stays above
+the plane: the planner drops any grasp that crosses it (:func:`crosses`).
 """
 
 from __future__ import annotations

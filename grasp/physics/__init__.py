@@ -1,7 +1,7 @@
 """Physics check of a grasp: close the BarrettHand on the true object in pybullet, lift, shake.
 
-:func:`lift_test` replays a planned :class:`grasp.hand.autograsp.GraspResult` in rigid-body dynamics and
-says whether the object stays in the hand. One trial, in its own DIRECT pybullet client
+:func:`lift_test` replays a planned :class:`grasp.hand.autograsp.GraspResult` in rigid-body dynamics
+and says whether the object stays in the hand. One trial, in its own DIRECT pybullet client
 (:class:`DynamicWorld`; no module-global client):
 
 1. **Object**: the mesh as a dynamic body. Mass and inertia at ``density`` (default
@@ -20,16 +20,16 @@ says whether the object stays in the hand. One trial, in its own DIRECT pybullet
    see its real velocity. The carriage only translates; the palm keeps the grasp's orientation.
    Finger–finger and finger–palm collisions are off, as in autograsp.
    It starts open, at the grasp's spread, ``pregrasp_backoff`` behind the palm pose along the
-   approach axis (:func:`grasp.hand.autograsp.pregrasp_pose`) and moves to the planned pose, or, with
-   ``approach="guarded"`` (how a robot executes a plan, and the benchmark's), toward it until it
-   first touches the object or the table, on past it for a plan whose approach ended touching.
+   approach axis (:func:`grasp.hand.autograsp.pregrasp_pose`) and moves to the planned pose, or,
+   with ``approach="guarded"`` (how a robot executes a plan, and the benchmark's), toward it until
+   it first touches the object or the table, on past it for a plan whose approach ended touching.
 3. **Close**: every finger DOF rises at ``close_speed``; J2 = DOF and J3 = DOF/3 under position
-   control with torque limits. The controller (:meth:`grasp.physics.fingers.FingerController.drive`) watches each
-   proximal joint's lag and velocity: stalled while its distal still moves is a proximal contact,
-   so the finger breaks away (J2 keeps pressing with its torque limit, the distal target keeps
-   following DOF/3 until it stalls or the DOF tops out); stalled together with the distal stops
-   the finger (both joints press with their limits). Closing ends when every finger has stopped,
-   plus ``close_settle``.
+   control with torque limits. The controller (:meth:`grasp.physics.fingers.FingerController.drive`)
+   watches each proximal joint's lag and velocity: stalled while its distal still moves is a
+   proximal contact, so the finger breaks away (J2 keeps pressing with its torque limit, the distal
+   target keeps following DOF/3 until it stalls or the DOF tops out); stalled together with the
+   distal stops the finger (both joints press with their limits). Closing ends when every finger has
+   stopped, plus ``close_settle``.
 4. **Load**: where the object sits in the palm frame is the reference. The support goes, gravity
    comes on; settle, lift the hand by ``lift`` along world +z (cosine profile), hold, then
    ``shake_count`` shakes along seeded random directions (out and back, one cycle each), hold.
@@ -51,7 +51,8 @@ Numbers (:class:`LiftSettings`, in one place; the hand's facts: ``hands/barrett/
   in about 1 s; slower keeps the first touch from batting the object away). After a finger stops,
   its joints keep pressing with their limits (standing in for the non-back-drivable worm drives
   holding the squeeze).
-- Friction: hand links get ``friction`` (default μ = 1.0, rubber, :data:`grasp.hand.quality.MU_RUBBER`)
+- Friction: hand links get ``friction`` (default μ = 1.0, rubber,
+:data:`grasp.hand.quality.MU_RUBBER`)
   and the object 1.0; pybullet multiplies the two, so a hand–object contact has exactly μ. No
   rolling or spinning friction.
 - Shake: 4 cycles of 3 cm at 3 Hz, peak acceleration 2π²f²A ≈ 5.3 m/s² (about 0.5 g).
@@ -60,27 +61,3 @@ Numbers (:class:`LiftSettings`, in one place; the hand's facts: ``hands/barrett/
 
 This module must not import torch (docs/design.md §2).
 """
-
-from grasp.physics.body import convex_decomposition, mass_properties, read_pieces
-from grasp.physics.lift import lift_test
-from grasp.physics.settings import (
-    APPROACHES,
-    DENSITY_KG_M3,
-    HOLD_TOLERANCE_M,
-    LiftResult,
-    LiftSettings,
-)
-from grasp.physics.world import DynamicWorld
-
-__all__ = [
-    "APPROACHES",
-    "DENSITY_KG_M3",
-    "HOLD_TOLERANCE_M",
-    "DynamicWorld",
-    "LiftResult",
-    "LiftSettings",
-    "convex_decomposition",
-    "lift_test",
-    "mass_properties",
-    "read_pieces",
-]

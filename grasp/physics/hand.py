@@ -23,7 +23,8 @@ class JointInfo(NamedTuple):
     child_link: str
 
 
-def load_hand(client, params: BarrettParams, *, fixed_base: bool) -> tuple[int, dict[str, JointInfo]]:
+def load_hand(client, params: BarrettParams, *,
+              fixed_base: bool) -> tuple[int, dict[str, JointInfo]]:
     """The hand from its generated URDF (:mod:`hands.barrett.urdf`) in ``client``, with implicit
     cylinders (pybullet would otherwise pad the palm's hull by its margin) and the URDF's
     inertia; its body id and its joints by name."""

@@ -94,8 +94,8 @@ def lift_test(
     mesh : trimesh.Trimesh
         The true object in world coordinates (metres), the frame of ``grasp.palm_pose``.
     grasp : GraspResult
-        A planned grasp (:func:`grasp.hand.autograsp.autograsp`, :func:`grasp.planner.plan`). Its palm
-        pose and spread are used; the finger joints come from the simulated closing.
+        A planned grasp (:func:`grasp.hand.autograsp.autograsp`, :func:`grasp.planner.plan`). Its
+        palm pose and spread are used; the finger joints come from the simulated closing.
     seed : int
         Seeds the shake directions. The same inputs and seed give the same result.
     lift : float

@@ -47,9 +47,9 @@ class VerifySettings:
     """How a planned grasp is tried (every range is closed; SI units).
 
     ``density``: kg/m³ of the planned mesh (the planner does not know the true mass; the lift
-    test's and the lift model's :data:`grasp.physics.settings.DENSITY_KG_M3`). Each trial multiplies it by a factor drawn log-uniformly
-    from ``mass_factor`` and draws the hand–object friction μ uniformly from ``friction``; its
-    shake directions come from a seed of the trial's own stream.
+    test's and the lift model's :data:`grasp.physics.settings.DENSITY_KG_M3`). Each trial multiplies
+    it by a factor drawn log-uniformly from ``mass_factor`` and draws the hand–object friction μ
+    uniformly from ``friction``; its shake directions come from a seed of the trial's own stream.
     """
 
     trials: int = TRIALS

@@ -13,8 +13,8 @@ those (scikit-learn, standardised features) gives :func:`hold_probability`; its 
 live in ``grasp/ranking/lift_model.json`` and are applied here with numpy, so planning needs no
 scikit-learn.
 
-Its data and training: :mod:`grasp.evaluate.lift_training` (``python -m grasp.evaluate.lift_training collect``,
-``train``).
+Its data and training: :mod:`grasp.evaluate.lift_training` (``python -m grasp.evaluate.lift_training
+collect``, ``train``).
 """
 
 from __future__ import annotations

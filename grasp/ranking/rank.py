@@ -102,8 +102,8 @@ def rank(
     alone held in the lift test for 7 of the 10 named objects, by this ranking for 10 (README).
 
     On a table (``scene.support_plane``) the second key is the lift model's probability that the
-    grasp holds (:mod:`grasp.ranking.lift_model`, learned from lift tests on training-split objects: the
-    object's estimated weight against the grip, the grasp's kind, its contacts' heights); every
+    grasp holds (:mod:`grasp.ranking.lift_model`, learned from lift tests on training-split objects:
+    the object's estimated weight against the grip, the grasp's kind, its contacts' heights); every
     grasp is then scored.
 
     Ties keep the input order. Without a table, with ``top_k`` only the grasps that can still

@@ -21,8 +21,8 @@ def select(
 ) -> list[GraspResult]:
     """The best ``top_k`` distinct grasps of ``results`` on ``scene`` (None: every result,
     ranked, near-duplicates included); with ``verify``, the distinct ranking lift-tested by
-    :func:`verified` before the cut. ``lap(stage, **counts)`` is called after "rank" (and "verify", with
-    ``verified``: how many grasps were lift-tested)."""
+    :func:`verified` before the cut. ``lap(stage, **counts)`` is called after "rank" (and "verify",
+    with ``verified``: how many grasps were lift-tested)."""
     if not verify:
         best = rank(results, scene) if top_k is None else best_distinct(results, scene, top_k)
         lap("rank")

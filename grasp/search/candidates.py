@@ -150,8 +150,8 @@ def table_candidates(
 ) -> list[Candidate]:
     """``n_candidates`` pre-grasp poses around ``mesh`` resting on ``plane``: top-down ones
     (palm +z against the normal, fingers across each axis of the footprint, spreads 0° and 60°);
-    for an object lower than the palm of a table pinch (:func:`grasp.hand.pinch.pinch_height`), table
-    pinches (the same, the approach ending with the open hand's lowest point
+    for an object lower than the palm of a table pinch (:func:`grasp.hand.pinch.pinch_height`),
+    table pinches (the same, the approach ending with the open hand's lowest point
     :data:`grasp.hand.pinch.TIP_CLEARANCE_M` above the table); for an object lower than the fingers'
     reach, fingertip ones (the same, the approach ending where the closing tips sweep just over
     the table); then :func:`candidate_poses`'s that do

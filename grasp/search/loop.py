@@ -184,7 +184,8 @@ def screen_order(scene: CollisionScene, candidates: Sequence[Candidate], travel:
 
 def table_limits(mesh: trimesh.Trimesh, plane: SupportPlane) -> str | None:
     """Why the hand may find no grasp of ``mesh`` on ``plane``: its footprint is wider than what
-    the fingertips close to from above (:func:`grasp.search.screen.fingertip_span`); None otherwise."""
+    the fingertips close to from above (:func:`grasp.search.screen.fingertip_span`); None
+    otherwise."""
     narrow, long, height = footprint(mesh, plane)
     span = fingertip_span()
     if narrow <= span:

@@ -17,7 +17,7 @@ It is approximate near contact: a point cloud and a voxel grid stand for the exa
 it agrees with the exact fcl check except within about a voxel of touching (the tests measure
 how often). The planner uses a coarse cloud (``grasp.search.loop.SCREEN_SPACING_M``, 20 mm: 430
 points) and nearest-voxel lookups: 64 candidates are screened in about 25 ms on this 2-core
-machine, where their exact autograsps take about 0.9 s (``python -m grasp.planner`` prints the
+machine, where their exact autograsps take about 0.9 s (``python -m grasp plan`` prints the
 stages; ``--exact 0`` autograsps all).
 
 With a support plane (``support_plane=``) the table is an obstacle too: a point's clearance is

@@ -53,8 +53,8 @@ def require_token(
 ) -> None:
     """401 unless the request carries ``Authorization: Bearer <GRASP_TOKEN>`` (when one is set).
 
-    :class:`service.api.middleware.TokenGate` has already checked this before the body was read; this
-    dependency declares the scheme in the OpenAPI document and guards in-process callers."""
+    :class:`service.api.middleware.TokenGate` has already checked this before the body was read;
+    this dependency declares the scheme in the OpenAPI document and guards in-process callers."""
     tokens = services.settings.tokens()
     if not tokens:
         return

@@ -30,8 +30,8 @@ class TokenGate:
     not carry it (a tokenless 30 MB upload is refused without parsing or keeping a byte of it).
 
     An answer sent before the body was read says ``Connection: close``: the server
-    (:mod:`service.server.connections`) discards the rest of the body, within bounds, then closes, so a
-    client that reads only after sending (urllib, requests) sees the answer and not a reset."""
+    (:mod:`service.server.connections`) discards the rest of the body, within bounds, then closes,
+    so a client that reads only after sending (urllib, requests) sees the answer and not a reset."""
 
     def __init__(self, app: ASGIApp, *, tokens: Sequence[str]) -> None:
         self.app = app

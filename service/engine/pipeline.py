@@ -1,7 +1,8 @@
 """The chain behind the routes, as plain blocking functions (the app runs them in worker threads).
 
 ``POST /views``: stored state → ``CompletionStream`` step → stored state.
-``GET /grasp``: stored state → completion → mesh (marching cubes); :mod:`service.engine.planning` plans.
+``GET /grasp``: stored state → completion → mesh (marching cubes); :mod:`service.engine.planning`
+plans.
 
 A view to an existing session is applied while its caller holds the session's lock across
 replicas (:meth:`service.store.base.Store.try_lock`, which never waits: the app waits for it on its

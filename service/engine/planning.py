@@ -12,11 +12,11 @@ it reaches a worker, and a plan is kept (``GRASP_PLAN_CACHE`` plans, least recen
 so that asking again about an unchanged mesh with the same options costs nothing: the inspector
 page, ``scene.glb`` and a robot polling ``GET /grasp`` between views all hit it.
 
-With ``verify=N`` (:mod:`grasp.physics.verify`) the plan ranks every autograsped grasp, a second worker
-computes the completion's convex pieces meanwhile (:func:`decompose`, into the disk cache the lift
-test reads), and then each tried grasp's trials run at once, each in a worker slot of its own taken
-in turn with other requests' plans (:func:`lift_trial`), so that one request's verification does
-not hold other sessions back by more than a grasp's trials.
+With ``verify=N`` (:mod:`grasp.physics.verify`) the plan ranks every autograsped grasp, a second
+worker computes the completion's convex pieces meanwhile (:func:`decompose`, into the disk cache the
+lift test reads), and then each tried grasp's trials run at once, each in a worker slot of its own
+taken in turn with other requests' plans (:func:`lift_trial`), so that one request's verification
+does not hold other sessions back by more than a grasp's trials.
 """
 
 from __future__ import annotations
@@ -113,10 +113,10 @@ def lift_trial(vertices: np.ndarray, faces: np.ndarray, grasp, support_plane, tr
 
 def decompose(vertices: np.ndarray, faces: np.ndarray) -> None:
     """The mesh's convex pieces for the lift test, computed into the shared disk cache
-    (:func:`grasp.physics.convex_decomposition`) while another worker plans."""
+    (:func:`grasp.physics.body.convex_decomposition`) while another worker plans."""
     import trimesh
 
-    from grasp.physics import convex_decomposition
+    from grasp.physics.body import convex_decomposition
 
     convex_decomposition(trimesh.Trimesh(vertices, faces, process=False))
 

@@ -84,15 +84,16 @@ def decode_view(view: ViewIn, limits: DecodeLimits) -> DecodedView:
     ``CompletionStream.add_view(depth=...)`` and the training data do, so that the points can be
     checked like client-sent ones. What a robot integration gets wrong is caught here: a label
     image as the mask, millimetres as metres (a depth median beyond ``limits.max_depth_median_m``,
-    the object's points beyond ``limits.max_point_distance_m``), intrinsics that are not in pixels or not of
-    this image.
+    the object's points beyond ``limits.max_point_distance_m``), intrinsics that are not in pixels
+    or not of this image.
     """
     pose = view.camera_pose  # checked rigid by its type (grasp_client.wire.rigid_pose)
     max_points, max_point_distance_m = limits.max_points, limits.max_point_distance_m
     if view.support_plane is not None and pose is None:
         raise InputError(("body", "support_plane"),
                          f"{SupportPlane.NEEDS_POSES} (this view has no camera_pose)")
-    posed = {"camera_to_world": None if pose is None else np.asarray(pose, dtype=np.float64), "support_plane": view.support_plane,
+    posed = {"camera_to_world": None if pose is None else np.asarray(pose, dtype=np.float64),
+             "support_plane": view.support_plane,
              "check_frames": view.check_frames, "registered": view.registered}
     if view.points is not None:
         if not view.points:

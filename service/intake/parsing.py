@@ -3,8 +3,8 @@
 JSON parsing and pydantic validation hold Python's GIL for their whole run (about 4 s for a
 10⁶-point, 33 MB body on this CPU), so a worker *thread* would still stall every other request.
 Bodies over :data:`IN_PROCESS_BYTES` therefore go to a small pool of worker processes, which
-parse, validate and decode them into numpy arrays (:class:`~service.intake.inputs.DecodedView`); only
-those arrays come back. Small bodies, the common case, are parsed in a thread: a process round
+parse, validate and decode them into numpy arrays (:class:`~service.intake.inputs.DecodedView`);
+only those arrays come back. Small bodies, the common case, are parsed in a thread: a process round
 trip would cost more than the parse.
 
 The answers match FastAPI's own body handling: a body that is not JSON is a 422 ``json_invalid``,

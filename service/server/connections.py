@@ -160,8 +160,8 @@ def check_uvicorn(version: str) -> None:
     if ".".join(version.split(".")[:2]) not in TESTED_UVICORN:
         raise SystemExit(
             f"python -m service: uvicorn {version} is installed, but the connection guards "
-            f"(service/server/connections.py) use uvicorn's H11Protocol internals and were tested with "
-            f"uvicorn {', '.join(v + '.x' for v in TESTED_UVICORN)} only; install the locked "
+            f"(service/server/connections.py) use uvicorn's H11Protocol internals and were tested "
+            f"with uvicorn {', '.join(v + '.x' for v in TESTED_UVICORN)} only; install the locked "
             "set (pip install -c requirements.lock -e .) or test that release and add it to "
             "TESTED_UVICORN")
 

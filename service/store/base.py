@@ -1,10 +1,10 @@
 """The session store interface: what the pipeline uses, whichever engine keeps the sessions.
 
 Two engines implement :class:`Store` (docs/design.md §9):
-:class:`service.store.sqlite_store.SQLiteSessionStore` keeps sessions in one SQLite file (the embedded
-default) and :class:`service.store.redis_store.RedisSessionStore` keeps them in Redis so that several
-replicas share them (``GRASP_STORE_URL``); :func:`service.store.sessions.open_store` picks one from the
-settings.
+:class:`service.store.sqlite_store.SQLiteSessionStore` keeps sessions in one SQLite file (the
+embedded default) and :class:`service.store.redis_store.RedisSessionStore` keeps them in Redis so
+that several replicas share them (``GRASP_STORE_URL``); :func:`service.store.sessions.open_store`
+picks one from the settings.
 
 A session holds the whole ``CompletionStream`` state (model memory, current grid, latest logits,
 counters: a few hundred kB, constant in the number of views), so a server killed at any moment

@@ -1,8 +1,8 @@
 """The store the settings name, and session locks: :func:`open_store` picks
 :class:`service.store.sqlite_store.SQLiteSessionStore` (one SQLite file, the embedded default) or
-:class:`service.store.redis_store.RedisSessionStore` for ``GRASP_STORE_URL``. Writes are compare-and-swap
-on the view count (see :mod:`service.store.base`); within one process :class:`SessionLocks` queues the
-``POST /views`` of a session so that none has to retry.
+:class:`service.store.redis_store.RedisSessionStore` for ``GRASP_STORE_URL``. Writes are
+compare-and-swap on the view count (see :mod:`service.store.base`); within one process
+:class:`SessionLocks` queues the ``POST /views`` of a session so that none has to retry.
 """
 
 from __future__ import annotations

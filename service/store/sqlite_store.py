@@ -1,6 +1,6 @@
 """The SQLite session store, the embedded default: :class:`SQLiteSessionStore` implements the
-:class:`service.store.base.Store` interface on one SQLite file (one row per session), in WAL mode, so a
-committed view survives a killed process. Writes are compare-and-swap on the view count (see
+:class:`service.store.base.Store` interface on one SQLite file (one row per session), in WAL mode,
+so a committed view survives a killed process. Writes are compare-and-swap on the view count (see
 :mod:`service.store.base`). :mod:`service.store.redis_store` is the other implementation;
 :func:`service.store.sessions.open_store` picks one from the settings.
 """

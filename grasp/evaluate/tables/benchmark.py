@@ -160,8 +160,8 @@ class BenchmarkTable(Table):
 
 
 def _flat(records: list[ObjectRecord]) -> list[str]:
-    """The objects lower than a table pinch's palm (:func:`grasp.hand.pinch.pinch_height`), planned on
-    the true mesh: which held, with which grasp, and why the others did not."""
+    """The objects lower than a table pinch's palm (:func:`grasp.hand.pinch.pinch_height`), planned
+    on the true mesh: which held, with which grasp, and why the others did not."""
     from grasp.hand.pinch import pinch_height
 
     low = [r for r in records if r.size_m[2] < pinch_height() and "true_mesh" in r.rows]
