@@ -228,7 +228,7 @@ def test_a_verification_does_not_starve_other_sessions(monkeypatch):
     monkeypatch.setattr(planning, "decompose", lambda vertices, faces: None)
     box = on_table(0.06, 0.06, 0.10)
     other = on_table(0.05, 0.05, 0.12)
-    planner = planning.Planner(1, processes=False, cache=0)
+    planner = planning.Planner(1, processes=False, queue=16, cache=0)
 
     async def both():
         done = {}

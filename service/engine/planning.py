@@ -138,7 +138,7 @@ class Planner:
     bounded queue in front and a cache of recent plans."""
 
     def __init__(
-        self, workers: int, *, processes: bool, queue: int = 16, cache: int = 128,
+        self, workers: int, *, processes: bool, queue: int, cache: int,
     ) -> None:
         self.workers = workers
         self.processes = processes
