@@ -59,5 +59,9 @@ Numbers (:class:`LiftSettings`, in one place; the hand's facts: ``hands/barrett/
 - Sim time: 0.5 s approach, up to 3.5 s closing, 3.1 s loaded (settle 0.25, lift 1.0, hold 0.25,
   shakes 1.33, hold 0.25); about 1–2 s of wall time on one core.
 
-This module must not import torch (docs/design.md §2).
+Modules: ``settings`` (every number, :class:`LiftSettings`), ``body`` (convex pieces, mass),
+``hand`` (the URDF loader both pybullet worlds use), ``fingers`` (the Barrett closing controller),
+``world`` (:class:`DynamicWorld`), ``lift`` (:func:`lift_test`), ``verify`` (grasps tried before a
+plan answers). This package imports no planner and, like its modules, not torch
+(docs/design.md §2); it re-exports nothing, so that ``grasp.physics.verify`` loads no pybullet.
 """
