@@ -43,7 +43,7 @@ import torch
 
 from completion import evidence as E
 from completion import grid as G
-from completion.view import View
+from completion.view import PLANE_NEEDS_POSE, View
 from grasp_client.wire import SupportPlane
 
 DEFAULT_THRESHOLD = 0.5
@@ -135,8 +135,7 @@ class CompletionStream:
             raise TypeError("give a View or its parts as keywords, not both")
         pose = view.camera_to_world
         if pose is None and self.support_plane is not None:
-            raise ValueError(f"{SupportPlane.NEEDS_POSES}: every view of a stream with one "
-                             "needs its pose")
+            raise ValueError(PLANE_NEEDS_POSE)
         if view.support_plane is not None:
             self.support_plane = view.support_plane
         bounds = None

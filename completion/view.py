@@ -20,6 +20,10 @@ import numpy as np
 from completion import grid as G
 from grasp_client.wire import SupportPlane
 
+#: Why a view without a camera pose is refused where a support plane is (the view's or the
+#: stream's): the plane is in the world frame, the grid in the camera's.
+PLANE_NEEDS_POSE = f"{SupportPlane.NEEDS_POSES}: every view of a stream with one needs its pose"
+
 
 @dataclass(frozen=True)
 class View:
@@ -63,6 +67,5 @@ class View:
             if camera_to_world.shape != (4, 4) or not np.isfinite(camera_to_world).all():
                 raise ValueError("camera_to_world must be a finite 4×4 matrix")
         elif support_plane is not None:
-            raise ValueError(f"{SupportPlane.NEEDS_POSES}: every view of a stream with one "
-                             "needs its pose")
+            raise ValueError(PLANE_NEEDS_POSE)
         return cls(points, grid, camera_to_world, support_plane)

@@ -182,10 +182,27 @@ class Pipeline:
                           object_seen=stream.seen)
 
     # ---------------------------------------------------------------------------- outputs
+    def _read(self, session_id: str,
+              support_plane: SupportPlane | None = None) -> tuple[SessionRecord, CompletionStream]:
+        """The session's record and stream, read once; with ``support_plane`` (world frame) the
+        session keeps that plane from now on (the caller holds its lock, as for a view), read
+        again when another process changed it meanwhile (up to ``UPDATE_ATTEMPTS``)."""
+        for _ in range(UPDATE_ATTEMPTS):
+            record = self.store.get(session_id)
+            stream = self._stream(record)
+            try:
+                if support_plane is not None:
+                    self._keep_plane(record, stream, support_plane)
+                return record, stream
+            except ConcurrentUpdate:
+                continue
+        raise ConcurrentUpdate(
+            f"session {session_id!r} kept changing while its support plane was stored; retry"
+        )
+
     def snapshot(self, session_id: str) -> Snapshot:
         """The latest completion; raises NoObjectError before any view with object points."""
-        record = self.store.get(session_id)
-        stream = self._stream(record)
+        record, stream = self._read(session_id)
         return _snapshot(record, stream, stream.completion())
 
     def occupancy(self, session_id: str) -> tuple[Snapshot, VoxelGrid]:
@@ -201,23 +218,10 @@ class Pipeline:
         self, session_id: str, support_plane: SupportPlane | None = None
     ) -> tuple[Snapshot, trimesh.Trimesh, dict[str, float]]:
         """What ``GET /grasp`` plans on: the completion's mesh; and each stage's milliseconds.
-        The session is read once; with ``support_plane`` (world frame) it keeps that plane from
-        now on (the caller holds its lock, as for a view) and the completion is cut at it."""
+        The session is read once (:meth:`_read`: with ``support_plane`` it keeps that plane, and
+        the completion is cut at it)."""
         t0 = time.perf_counter()
-        for _ in range(UPDATE_ATTEMPTS):
-            record = self.store.get(session_id)
-            stream = self._stream(record)
-            if support_plane is None:
-                break
-            try:
-                self._keep_plane(record, stream, support_plane)
-            except ConcurrentUpdate:
-                continue
-            break
-        else:
-            raise ConcurrentUpdate(
-                f"session {session_id!r} kept changing while its support plane was stored; retry"
-            )
+        record, stream = self._read(session_id, support_plane)
         t1 = time.perf_counter()
         completion = stream.completion()
         t2 = time.perf_counter()
