@@ -62,7 +62,9 @@ def test_benchmark_records_of_six_objects_are_pinned():
             assert scene.mask.any(axis=(1, 2)).all()  # every view sees it
             rows = b.run_object(scene, {}, ["true_mesh"], candidates=64, seed=index)
             record, pinned = b.object_record(object_id, scene.mesh, rows), golden[index]
-            assert (record["id"], record["size_m"]) == (pinned["id"], pinned["size_m"])
+            assert record["id"] == pinned["id"]
+            # the resting pose is a physics result: on an AMD EPYC one extent rests 0.2 mm off
+            np.testing.assert_allclose(record["size_m"], pinned["size_m"], atol=5e-4)
             assert record["mass_kg"] == pytest.approx(pinned["mass_kg"], abs=1e-4)
             got, want = record["rows"]["true_mesh"], pinned["rows"]["true_mesh"]
             assert {k: got.get(k) for k in ("held", "reason", "kind")} == {

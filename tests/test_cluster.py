@@ -48,12 +48,17 @@ def test_data_generation_on_ray_writes_the_same_shards(tmp_path):
 
 
 @pytest.mark.slow
-def test_quick_evaluation_on_ray_gives_the_same_tables(tmp_path):
+def test_an_evaluation_on_ray_gives_the_same_tables(tmp_path):
+    """Every kind of job (the main table's grasped and lift-tested sequences, a named object, the
+    benchmark, the clutter table) on the shipped models, on Ray actors and on the process pool."""
+    small = ["--conditions", "camera_pan,tabletop", "--count", "1", "--grasp-count", "1",
+             "--physics-count", "1", "--candidates", "4", "--named", "1", "--sensor", "0",
+             "--overhead", "0", "--benchmark", "1", "--benchmark-candidates", "8", "--clutter", "1"]
     results = {}
     for name, extra in (("pool", []), ("ray", ["--ray"])):
         out = tmp_path / name
         done = subprocess.run(
-            [sys.executable, "-m", "grasp.evaluate", "--quick", "--workers", "2", "--no-figures",
+            [sys.executable, "-m", "grasp.evaluate", *small, "--workers", "2", "--no-figures",
              "--quiet", "--out", str(out), *extra],
             cwd=REPO, capture_output=True, text=True, timeout=1200,
         )  # fmt: skip

@@ -326,7 +326,8 @@ def test_numbers_do_not_depend_on_the_number_of_workers(tmp_path):
             count=1,
             grasp_count=0,
             # the benchmark's records are compared too (per_object)
-            options=(("named", 0), ("sensor", 1), ("benchmark", 2), ("benchmark_candidates", 8)),
+            options=(("named", 0), ("sensor", 1), ("benchmark", 2), ("benchmark_candidates", 8),
+                     ("clutter", 1)),
             views=3,
             seed=5,
             workers=workers,
@@ -519,6 +520,7 @@ def test_nothing_prints_pybullet_noise(tmp_path):
         [sys.executable, "-m", "grasp.evaluate", "--models", "prior,registered_fusion",
          "--conditions", "camera_pan", "--count", "1", "--grasp-count", "1",
          "--physics-count", "1", "--named", "0", "--views", "2", "--candidates", "2",
+         "--benchmark", "1", "--benchmark-candidates", "8", "--clutter", "0", "--sensor", "0",
          "--workers", "1", "--no-figures", "--quiet", "--out", str(tmp_path / "eval")],
     ]
     for command in commands:

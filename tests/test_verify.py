@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 import trimesh
 
+from grasp.hand.closing import ANGLE_TOL_RAD, APPROACH_TOL_M
 from grasp.hand.table import to_upright
 from grasp.physics import verify as V
 from grasp.physics.lift import lift_test
@@ -40,8 +41,11 @@ def test_verify_0_is_the_plan_before_verification_existed():
         assert len(grasps) == len(golden[case]), case
         for g, want in zip(grasps, golden[case], strict=True):
             assert g.success == want["success"] and g.reason == want["reason"]
-            np.testing.assert_allclose(g.palm_pose, want["palm_pose"], atol=1e-8)
-            np.testing.assert_allclose(g.joints_deg, want["joints_deg"], atol=1e-5)
+            # within the closing search's own bisection tolerances: a last bisection step may
+            # fall the other way on another CPU (on an AMD EPYC finger 3 ends 4.5e-4° off)
+            np.testing.assert_allclose(g.palm_pose, want["palm_pose"], atol=APPROACH_TOL_M)
+            np.testing.assert_allclose(g.joints_deg, want["joints_deg"],
+                                       atol=np.degrees(ANGLE_TOL_RAD))
             assert g.verification is None and "verification" not in g.as_dict()
 
 
