@@ -12,6 +12,18 @@ import pytest
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 
 
+#: The files that take a minute or more on the project's 2-core machine (``--durations``), run
+#: first: pytest-xdist's ``--dist loadfile`` hands out files in collection order, so a long file
+#: last would leave one worker running alone at the end.
+SLOW_FILES = ("test_train.py", "test_evaluate.py", "test_cluster.py", "test_memory.py",
+              "test_client_install.py", "test_objects.py")
+
+
+def pytest_collection_modifyitems(config, items):
+    first = {name: rank for rank, name in enumerate(SLOW_FILES)}
+    items.sort(key=lambda item: first.get(item.path.name, len(first)))  # stable: order kept
+
+
 def pytest_configure(config):
     try:
         import torch

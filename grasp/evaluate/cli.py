@@ -13,7 +13,16 @@ from completion.cli import HelpWithDefaults, integer_at_least, name_list
 from completion.objects import load_object, objects_in_folder
 from completion.prior import PRIOR_FILE
 from completion.scenes import CONDITIONS, VIEWS
-from grasp.evaluate.config import PRESETS, PRIOR, ROWS, Preset, Settings, checkpoints_loaded
+from grasp.evaluate.config import (
+    MEASURED,
+    MEASURED_ON,
+    PRESETS,
+    PRIOR,
+    ROWS,
+    Preset,
+    Settings,
+    checkpoints_loaded,
+)
 from grasp.evaluate.figures import write_figures
 from grasp.evaluate.pool import run_jobs
 from grasp.evaluate.results_json import build_results
@@ -64,7 +73,8 @@ def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(formatter_class=HelpWithDefaults,
         prog="python -m grasp.evaluate",
         description="The paper's evaluation: Jaccard, F-score@1%/2% and grasp joint error for "
-        "every model on freshly generated scenes (deterministic from --seed).",
+        "every model on freshly generated scenes (deterministic from --seed). With no option: "
+        f"{MEASURED['default'].text} on {MEASURED_ON}.",
     )
     size = p.add_mutually_exclusive_group()
     size.add_argument(
@@ -72,14 +82,15 @@ def build_parser() -> argparse.ArgumentParser:
         action="store_const",
         const="quick",
         dest="preset",
-        help="a smoke test of the whole chain (about a minute on two free cores)",
+        help=f"a smoke test of the whole chain ({MEASURED['quick'].text} on two free cores)",
     )
     size.add_argument(
         "--full",
         action="store_const",
         const="full",
         dest="preset",
-        help="50 sequences per cell, the planner's 64 candidates (about 40 min on two cores)",
+        help="50 sequences per cell, the planner's 64 candidates (not measured; estimated at "
+        "about 40 min on two cores)",
     )
     p.set_defaults(preset="default")
     _add_what_options(p)

@@ -133,6 +133,31 @@ DEFAULT_THRESHOLD = 0.5
 
 
 @dataclass(frozen=True)
+class Measured:
+    """One run's wall time on the project's machine: what --help, the README and
+    docs/performance.md quote for a preset (tests/test_timings.py checks that they agree)."""
+
+    wall_s: float
+    command: str
+    when: str  # the date and commit of the run
+
+    @property
+    def text(self) -> str:
+        """The figure as every page quotes it: ``"876 s (14.6 min)"``."""
+        return f"{self.wall_s:.0f} s ({self.wall_s / 60:.1f} min)"
+
+
+#: The machine the :data:`MEASURED` runs ran on.
+MEASURED_ON = "2 cores (AMD EPYC), 2 worker processes, nothing else running"
+#: Wall time of a preset's run, measured once on :data:`MEASURED_ON`; re-measure and update the
+#: README and docs/performance.md with it when a change moves it. ``--full`` is not measured.
+MEASURED: dict[str, Measured] = {
+    "default": Measured(876.0, "python -m grasp.evaluate", "2026-12-07, main 22fd3ff"),
+    "quick": Measured(150.0, "python -m grasp.evaluate --quick", "2026-12-08, main TODO"),
+}
+
+
+@dataclass(frozen=True)
 class Preset:
     """The main table's sizes in a run: sequences per (condition, split), grasped and lift-tested
     ones, planner candidates (the other tables' options give theirs per preset themselves:
