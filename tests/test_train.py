@@ -113,8 +113,9 @@ def test_bad_arguments_are_explained(capsys):
 @pytest.mark.slow
 def test_the_recipe_overfits_a_handful_of_sequences(shards, tmp_path, capsys):
     """Trained and scored on the same two 3-view camera-pan sequences, a small U-Net gets them
-    right: the loss falls and their Jaccard rises above 0.9 (the recipe can learn; 1,000 steps since
-    the cleaned input of stop 54: 400 reached 0.88 on these two sequences)."""
+    right: the loss falls and their Jaccard rises above 0.9 (the recipe can learn; 400 steps reached
+    0.88 on these two sequences after the cleaned input of stop 54; on an AMD EPYC at stop 77 the
+    Jaccard at 0.5 passed 0.9 at step 400 and reached 0.918 at 700, 0.922 at 1,000)."""
     import shutil
 
     same = tmp_path / "same"
@@ -125,7 +126,7 @@ def test_the_recipe_overfits_a_handful_of_sequences(shards, tmp_path, capsys):
     out = tmp_path / "overfit.pt"
     assert main(["--model", "single_view", "--views", "3", "--conditions", "camera_pan",
                  "--train-dir", str(same), "--val-dir", str(same), "--train-count", "0",
-                 "--val-count", "0", "--steps", "1000", "--val-every", "50", "--batch-size", "2",
+                 "--val-count", "0", "--steps", "700", "--val-every", "50", "--batch-size", "2",
                  "--lr", "1e-2", "--config", "channels=8:16:32,top_channels=4", "--no-augment",
                  "--threads", "1", "--out", str(out), "--run-dir", str(tmp_path / "run"),
                  "--quiet"]) == 0
