@@ -182,6 +182,21 @@ def test_concave_mesh_is_decomposed_once_and_cached(tmp_path, monkeypatch):
     assert all(np.array_equal(p, q) for p, q in zip(pieces, pieces_again, strict=True))
 
 
+def test_the_decomposition_cache_keeps_the_most_recently_used(tmp_path, monkeypatch):
+    import os
+
+    from grasp.physics import body
+
+    monkeypatch.setattr(body, "CACHE_ENTRIES", 2)
+    boxes = [trimesh.creation.box(extents=[0.05 + 0.01 * k, 0.04, 0.03]) for k in range(3)]
+    paths = [convex_decomposition(boxes[k], cache_dir=tmp_path)[0] for k in range(2)]
+    for age, path in enumerate(paths):  # the first made 20 s ago, the second 10 s ago
+        os.utime(path, (path.stat().st_atime, path.stat().st_mtime - 20 + 10 * age))
+    assert convex_decomposition(boxes[0], cache_dir=tmp_path)[0] == paths[0]  # a hit: renewed
+    third, _ = convex_decomposition(boxes[2], cache_dir=tmp_path)  # a miss: one entry too many
+    assert sorted(tmp_path.glob("*.obj")) == sorted([paths[0], third])  # the unused one went
+
+
 def test_bad_inputs_raise_value_errors(box, good_grasp):
     with pytest.raises(ValueError, match="lift"):
         lift_test(box, good_grasp, lift=-0.1)

@@ -19,6 +19,10 @@ from grasp.physics.settings import DENSITY_KG_M3, VHACD_OPTIONS
 
 log = logging.getLogger(__name__)
 _CACHE_VERSION = "1"
+#: Most meshes the convex-decomposition cache keeps (about 23 KB each: some 23 MB); past it the
+#: least recently used go first (a hit renews an entry's time), so a long-running service that
+#: sees a new completion at every view does not fill the disk.
+CACHE_ENTRIES = 1000
 
 
 def _cache_root(cache_dir: str | Path | None) -> Path:
@@ -71,7 +75,7 @@ def convex_decomposition(
     (:data:`VHACD_OPTIONS`). The OBJ is cached under ``cache_dir`` (default
     ``$XDG_CACHE_HOME/mvp-grasp/convex`` or ``~/.cache/…``, falling back to the temp folder when
     that is not writable) by a hash of the vertices, faces and options, so the same mesh in the same
-    pose is decomposed once.
+    pose is decomposed once; the cache keeps the :data:`CACHE_ENTRIES` most recently used.
 
     Returns
     -------
@@ -108,7 +112,30 @@ def convex_decomposition(
                 log.warning("V-HACD returned no pieces; using the convex hull")
                 pieces = [np.asarray(mesh.vertices)]
             write_pieces(path, pieces)
+        _evict(root, CACHE_ENTRIES)
+    else:
+        _touch(path)
     return path, read_pieces(path)
+
+
+def _touch(path: Path) -> None:
+    try:
+        os.utime(path)  # used now: the last to be evicted
+    except OSError:  # evicted meanwhile by another process: read_pieces says so
+        pass
+
+
+def _evict(root: Path, keep: int) -> None:
+    """Delete all but the ``keep`` most recently used OBJ files of the cache folder."""
+    entries = []
+    for path in root.glob("*.obj"):
+        try:
+            entries.append((path.stat().st_mtime, path))
+        except OSError:  # deleted by another process since the listing
+            continue
+    entries.sort()
+    for _, path in entries[: max(len(entries) - keep, 0)]:
+        path.unlink(missing_ok=True)
 
 
 def shrink(vertices: np.ndarray, margin: float) -> np.ndarray:
