@@ -466,9 +466,7 @@ def load_checkpoint(
     model.load_state_dict(payload["state_dict"])  # casts e.g. fp16 weights to the fp32 model
     model.threshold = float(payload.get("threshold", 0.5))
     model.name = str(payload.get("name", Path(path).stem))
-    # the convolutions take channels-last inputs (forward); weights in the same layout spare
-    # oneDNN a reorder at every call: 15–30 % of a forward pass on one core (docs/performance.md)
-    return model.to(map_location, memory_format=torch.channels_last_3d).eval()
+    return model.to(map_location).eval()
 
 
 def available_weights() -> list[str]:
