@@ -149,11 +149,12 @@ class Measured:
 
 #: The machine the :data:`MEASURED` runs ran on.
 MEASURED_ON = "2 cores (AMD EPYC), 2 worker processes, nothing else running"
-#: Wall time of a preset's run, measured once on :data:`MEASURED_ON`; re-measure and update the
-#: README and docs/performance.md with it when a change moves it. ``--full`` is not measured.
+#: Wall time of a preset's run (the process, ``/usr/bin/time``), measured once on
+#: :data:`MEASURED_ON`; re-measure and update the README and docs/performance.md with it when a
+#: change moves it. ``--full`` is not measured.
 MEASURED: dict[str, Measured] = {
-    "default": Measured(876.0, "python -m grasp.evaluate", "2026-12-07, main 22fd3ff"),
-    "quick": Measured(150.0, "python -m grasp.evaluate --quick", "2026-12-08, main TODO"),
+    "default": Measured(889.4, "python -m grasp.evaluate", "2026-12-08, main f5f1eee"),
+    "quick": Measured(133.4, "python -m grasp.evaluate --quick", "2026-12-08, main f5f1eee"),
 }
 
 
@@ -170,27 +171,22 @@ class Preset:
     physics_count: int  # of the grasped test ones, how many are lift-tested in pybullet
 
 
-#: Sizes per preset, from measured costs on one core (process time): generating a sequence
-#: 0.2–0.45 s; running the six models over it 0.2 s; Jaccard + F-score of 12 views × 7 rows
-#: 1.7 s; one joint error (collision model of the completion, plan, two re-grasps)
-#: ≈ 0.15 s + 0.02 s per planner candidate, × 8 rows per grasped sequence.
-#: One pybullet lift test (grasp success) ≈ 0.75 s, × 9 (8 rows + the true mesh) per
-#: lift-tested sequence. F-score of 12 views × (8 rows + the ceiling) ≈ 2.3 s a sequence.
+#: Sizes per preset. What each stage costs is in every run's results.md (its Timings section:
+#: wall and CPU seconds per stage, summed over sequences) and docs/performance.md;
+#: :data:`MEASURED` holds the wall times the docs quote.
 PRESETS: dict[str, Preset] = {
-    # ≈ 90 core-seconds: a smoke test of the whole chain (about a minute on two cores).
+    # A smoke test of the whole chain (MEASURED["quick"]).
     "quick": Preset(count=2, candidates=8, grasp_count=2, physics_count=1),
-    # The command with no arguments (timings in the README): 120 sequences (10 per condition
+    # The command with no arguments (MEASURED["default"]): 120 sequences (10 per condition
     # and split), all 80 single-object ones grasped with 24 candidates (the planner's 24
     # principal-axis poses) and 10 more test sequences per single-object condition grasped only
     # (20 grasps per test cell, so that one grasp cannot swing the joint error), 5 of them per
     # test cell lift-tested, and the other tables at their own defaults (tables.base.Option:
     # 5 named objects, the sensor table's 5 test sequences per condition, the grasp benchmark's
-    # 30 objects, 10 of them with the verified rows, ...): under 10 minutes on two cores (706 s
-    # measured before the sensor table, a table sized by itself and the train split's lift
-    # tests were cut to these sizes).
+    # 30 objects, 10 of them with the verified rows, ...).
     "default": Preset(count=10, candidates=24, grasp_count=20, physics_count=5),
-    # ≈ 4,500 core-seconds (about 40 minutes on two cores; use --workers on a bigger machine):
-    # 50 sequences per cell and the planner's full 64 candidates.
+    # Not measured (estimated at about 40 minutes on two cores; use --workers on a bigger
+    # machine): 50 sequences per cell and the planner's full 64 candidates.
     "full": Preset(count=50, candidates=64, grasp_count=50, physics_count=10),
 }
 
