@@ -13,7 +13,9 @@ class HelpWithDefaults(argparse.HelpFormatter):
 
     def _get_help_string(self, action: argparse.Action) -> str:
         text = action.help or ""
-        skip = action.default in (None, argparse.SUPPRESS) or isinstance(action.default, bool)
+        # a flag (store_const, nargs 0) has the default of its dest, not one of its own
+        skip = (action.default in (None, argparse.SUPPRESS) or isinstance(action.default, bool)
+                or action.nargs == 0)
         if "default" in text.lower() or skip or not action.option_strings:
             return text
         return f"{text} (default: %(default)s)" if text else "default: %(default)s"

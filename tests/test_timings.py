@@ -22,3 +22,4 @@ def test_readme_help_and_performance_page_quote_the_measured_evaluation_times():
         if preset == "default":  # the quick start's figure
             assert f"{run.text} on 2 cores" in readme
     assert "not measured" in help_text  # --full's figure is an estimate and says so
+    assert "(default: default)" not in help_text  # --quick and --full are flags
