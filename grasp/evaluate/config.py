@@ -143,7 +143,7 @@ class Measured:
 
     @property
     def text(self) -> str:
-        """The figure as every page quotes it: ``"876 s (14.6 min)"``."""
+        """The figure as every page quotes it: ``"889 s (14.8 min)"``."""
         return f"{self.wall_s:.0f} s ({self.wall_s / 60:.1f} min)"
 
 
