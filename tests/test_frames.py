@@ -46,17 +46,19 @@ def _mm(pose):
     return out
 
 
-# mistake -> (what changes: pose, plane or K), the field refused, words of the message
+# mistake -> (what changes: pose, plane or K), the field refused (the mistake's own, whichever check
+# noticed it), words of the message
 MISTAKES = {
     "translation in millimetres": ({"pose": _mm}, "camera_pose", "looks like millimetres"),
-    "world→camera": ({"pose": np.linalg.inv}, "", "world→camera"),
-    "OpenGL camera": ({"pose": lambda p: p @ np.diag([1.0, -1.0, -1.0, 1.0])}, "", "OpenGL"),
+    "world→camera": ({"pose": np.linalg.inv}, "camera_pose", "world→camera"),
+    "OpenGL camera": ({"pose": lambda p: p @ np.diag([1.0, -1.0, -1.0, 1.0])}, "camera_pose",
+                      "OpenGL"),
     "plane in the camera frame": ({"plane": lambda p, pose: tuple(
         SupportPlane(p[:3], p[3]).transformed(pose).as_array())},
         "support_plane", "in the camera frame"),
     "plane's d with the wrong sign": ({"plane": lambda p, pose: (*p[:3], -p[3])},
                                       "support_plane", "wrong sign"),
-    "plane's normal down": ({"plane": lambda p, pose: tuple(-np.array(p))}, "camera_pose",
+    "plane's normal down": ({"plane": lambda p, pose: tuple(-np.array(p))}, "support_plane",
                             "normal points down"),
     "K as fx, cx, fy, cy": ({"K": lambda K: (K[0, 0], K[0, 2], K[1, 1], K[1, 2])}, "intrinsics",
                             "order fx, fy, cx, cy"),

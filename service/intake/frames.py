@@ -79,7 +79,10 @@ def check_view(view: DecodedView, plane: SupportPlane | None, previous: Previous
         return
     loc, said = problem
     fix = _likely_mistake(view, plane, previous, limits)
-    raise InputError(loc, f"{said}; {fix}" if fix else f"{said} ({FRAMES})")
+    if fix is None:
+        raise InputError(loc, f"{said} ({FRAMES})")
+    field, advice = fix  # the field to correct is the mistake's, whichever check noticed it
+    raise InputError(("body", field), f"{said}; {advice}")
 
 
 def _check_distance(pose: np.ndarray, previous: Previous | None, limits: FrameChecks) -> None:
@@ -145,29 +148,31 @@ def _table_seen(background, pose, plane, limits) -> bool | None:
     return share >= TABLE_SHARE and share >= min(TABLE_CONCENTRATION * chance, 0.5)
 
 
-def _likely_mistake(view: DecodedView, plane, previous, limits) -> str | None:
-    """The first common mistake whose undoing makes the view consistent, as advice."""
+def _likely_mistake(view: DecodedView, plane, previous, limits) -> tuple[str, str] | None:
+    """The first common mistake whose undoing makes the view consistent: the field it is in, and
+    advice."""
     pose = view.camera_to_world
-    alternatives: list[tuple[str, Callable[[], tuple]]] = [
-        ("camera_pose looks like world→camera: send camera→world (its inverse)",
+    alternatives: list[tuple[str, str, Callable[[], tuple]]] = [
+        ("camera_pose", "camera_pose looks like world→camera: send camera→world (its inverse)",
          lambda: (np.linalg.inv(pose), plane)),
-        ("camera_pose looks like an OpenGL camera (y up, z backward): the camera frame is "
-         "OpenCV's (x right, y down, z forward); multiply it by diag(1, -1, -1, 1) on the right",
-         lambda: (pose @ OPENGL_TO_OPENCV, plane)),
+        ("camera_pose", "camera_pose looks like an OpenGL camera (y up, z backward): the camera "
+         "frame is OpenCV's (x right, y down, z forward); multiply it by diag(1, -1, -1, 1) on "
+         "the right", lambda: (pose @ OPENGL_TO_OPENCV, plane)),
     ]
     if plane is not None:
         alternatives += [
-            ("support_plane's normal points down: n points up, from the table toward the object "
-             "(send -n, -d)", lambda: (pose, SupportPlane(-plane.normal, -plane.offset))),
-            ("support_plane's d has the wrong sign: n·x + d = 0 for points x on the table",
-             lambda: (pose, SupportPlane(plane.normal, -plane.offset))),
-            ("support_plane looks like it is in the camera frame: send it in the world frame",
-             lambda: (pose, plane.transformed(np.linalg.inv(pose)))),
+            ("support_plane", "support_plane's normal points down: n points up, from the table "
+             "toward the object (send -n, -d)",
+             lambda: (pose, SupportPlane(-plane.normal, -plane.offset))),
+            ("support_plane", "support_plane's d has the wrong sign: n·x + d = 0 for points x on "
+             "the table", lambda: (pose, SupportPlane(plane.normal, -plane.offset))),
+            ("support_plane", "support_plane looks like it is in the camera frame: send it in the "
+             "world frame", lambda: (pose, plane.transformed(np.linalg.inv(pose)))),
         ]
-    for advice, undo in alternatives:
+    for field, advice, undo in alternatives:
         other_pose, other_plane = undo()
         if _problem(view.points, view.background, other_pose, other_plane, previous,
                     limits) is None:
-            return advice
+            return field, advice
     return None
 
