@@ -91,7 +91,7 @@ def convex_decomposition(
         root = Path(tempfile.gettempdir()) / "mvp-grasp-convex"
         root.mkdir(parents=True, exist_ok=True)
     path = root / f"{_mesh_key(mesh)}.obj"
-    if not path.is_file():
+    if not _renewed(path):  # not cached (or evicted by another process just now)
         if mesh.is_convex:
             write_pieces(path, [np.asarray(mesh.vertices)])
         else:
@@ -113,16 +113,18 @@ def convex_decomposition(
                 pieces = [np.asarray(mesh.vertices)]
             write_pieces(path, pieces)
         _evict(root, CACHE_ENTRIES)
-    else:
-        _touch(path)
     return path, read_pieces(path)
 
 
-def _touch(path: Path) -> None:
+def _renewed(path: Path) -> bool:
+    """Mark a cached entry used now (the last to be evicted); False when there is none."""
     try:
-        os.utime(path)  # used now: the last to be evicted
-    except OSError:  # evicted meanwhile by another process: read_pieces says so
+        os.utime(path)
+    except FileNotFoundError:
+        return False
+    except OSError:  # a cache this process may read but not write: used as it is
         pass
+    return True
 
 
 def _evict(root: Path, keep: int) -> None:
