@@ -91,6 +91,7 @@ async def _lifespan(app: FastAPI) -> AsyncIterator[None]:
             processes=settings.planning_processes,
             queue=settings.planning_queue,
             cache=settings.plan_cache,
+            per_client=settings.client_plans,
         ),
         locks=SessionLocks(),
         parser=BodyParser(

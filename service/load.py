@@ -10,12 +10,21 @@ session afterwards). Talks to loopback addresses only, and stops by itself::
     python -m service.load --url http://127.0.0.1:8000 --sessions 32 --views 12
     python -m service.load --url http://127.0.0.1:8000 --sessions 2 --grasp-every-view
     python -m service.load --url http://127.0.0.1:8000 --condition clutter --sessions 2 --views 4
+
+With ``--neighbour-token`` another client (a second token of ``GRASP_TOKEN``) keeps
+``--neighbour-requests`` verified ``GET /grasp`` going on a session of its own for the whole run:
+the measured client's latencies then say how much a heavy neighbour costs it (fair planners)::
+
+    GRASP_TOKEN=tokA,tokB python -m service &
+    python -m service.load --token tokB --condition tabletop --sessions 4 --views 4 \
+        --grasp-every-view --verify 0 --neighbour-token tokA
 """
 
 from __future__ import annotations
 
 import argparse
 import asyncio
+import contextlib
 import ipaddress
 import json
 import os
@@ -30,6 +39,8 @@ import numpy as np
 from completion.cli import HelpWithDefaults
 
 ROUTES = ("POST /views", "GET /grasp", "GET /sessions/{id}", "DELETE /sessions/{id}")
+#: The neighbour's routes (``--neighbour-token``): reported, never a failure of the run.
+NEIGHBOUR = "GET /grasp (neighbour)"
 
 
 @dataclass
@@ -43,7 +54,7 @@ class Tally:
 
     def summary(self) -> dict:
         routes = {}
-        for route in ROUTES:
+        for route in (*ROUTES, NEIGHBOUR):
             lat = np.asarray(self.latency_ms.get(route, []), dtype=float)
             if not len(lat) and not self.errors.get(route):
                 continue
@@ -221,10 +232,53 @@ async def _session(client, tally: Tally, bodies: list[dict], args) -> None:
         await _timed(client, tally, "DELETE /sessions/{id}", "DELETE", f"/sessions/{session_id}")
 
 
+async def _neighbour(args, views: list[dict], tally: Tally, started: asyncio.Event) -> None:
+    """Another client: one session of ``views``, then ``--neighbour-requests`` verified
+    ``GET /grasp`` at a time until cancelled, each a plan no cache holds (n_candidates cycles)."""
+    import httpx
+
+    headers = {"Authorization": f"Bearer {args.neighbour_token}"}
+    limits = httpx.Limits(max_connections=args.neighbour_requests + 1)
+    async with httpx.AsyncClient(base_url=args.url, headers=headers, timeout=args.timeout,
+                                 limits=limits) as client:
+        session_id = None
+        for body in views:
+            payload = body if session_id is None else {**body, "session_id": session_id}
+            r = await client.post("/views", json=payload)
+            r.raise_for_status()
+            session_id = r.json()["session_id"]
+        asked = iter(range(10**9))
+
+        async def keep_asking() -> None:
+            while True:
+                params = {"session_id": session_id, "n_candidates": 65 + next(asked) % 400,
+                          "verify": args.neighbour_verify}
+                await _timed(client, tally, NEIGHBOUR, "GET", "/grasp", params=params)
+
+        tasks = [asyncio.create_task(keep_asking()) for _ in range(args.neighbour_requests)]
+        started.set()
+        try:
+            await asyncio.gather(*tasks)
+        finally:
+            for task in tasks:
+                task.cancel()
+            with contextlib.suppress(Exception):
+                await client.delete(f"/sessions/{session_id}")
+
+
 async def run(args, scenes: list[list[dict]]) -> Tally:
     import httpx
 
     tally = Tally()
+    neighbour = None
+    if args.neighbour_token:
+        started = asyncio.Event()
+        neighbour = asyncio.create_task(_neighbour(args, scenes[0], tally, started))
+        await asyncio.wait([neighbour, asyncio.create_task(started.wait())],
+                           return_when=asyncio.FIRST_COMPLETED)
+        if neighbour.done():
+            neighbour.result()  # its session failed: say why
+        await asyncio.sleep(args.neighbour_head_start)
     headers = {"Authorization": f"Bearer {args.token}"} if args.token else {}
     limits = httpx.Limits(max_connections=args.concurrency)
     semaphore = asyncio.Semaphore(args.concurrency)
@@ -237,9 +291,15 @@ async def run(args, scenes: list[list[dict]]) -> Tally:
             async with semaphore:
                 await _session(client, tally, scenes[i % len(scenes)], args)
 
-        await asyncio.wait_for(
-            asyncio.gather(*(one(i) for i in range(args.sessions))), timeout=args.deadline
-        )
+        try:
+            await asyncio.wait_for(
+                asyncio.gather(*(one(i) for i in range(args.sessions))), timeout=args.deadline
+            )
+        finally:
+            if neighbour is not None:
+                neighbour.cancel()
+                with contextlib.suppress(asyncio.CancelledError):
+                    await neighbour
     return tally
 
 
@@ -274,6 +334,13 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--deadline", type=float, default=1800.0, help="seconds for the whole run")
     p.add_argument("--token", default=os.environ.get("GRASP_TOKEN"), help="default $GRASP_TOKEN")
     p.add_argument("--keep", action="store_true", help="keep the sessions (default: delete)")
+    p.add_argument("--neighbour-token", help="another client's token: it keeps verified GET "
+                   "/grasp going on a session of its own meanwhile (default: no neighbour)")
+    p.add_argument("--neighbour-requests", type=int, default=8,
+                   help="the neighbour's GET /grasp at a time")
+    p.add_argument("--neighbour-verify", type=int, default=8, help="the neighbour's verify")
+    p.add_argument("--neighbour-head-start", type=float, default=2.0,
+                   help="seconds the neighbour runs before the measured sessions start")
     p.add_argument("--json", help="also write the summary to this file (default: none)")
     args = p.parse_args(argv)
     try:
@@ -282,7 +349,8 @@ def main(argv: list[str] | None = None) -> int:
         p.error(str(exc))
     if args.verify is not None and args.verify < 0:
         p.error(f"--verify must be >= 0, got {args.verify}")
-    for name in ("sessions", "views", "concurrency", "scenes", "n_candidates"):
+    checked = ("sessions", "views", "concurrency", "scenes", "n_candidates", "neighbour_requests")
+    for name in checked:
         if getattr(args, name) < (2 if name == "views" else 1):
             p.error(f"--{name.replace('_', '-')} is too small: {getattr(args, name)}")
 
@@ -310,7 +378,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.json:
         with open(args.json, "w") as f:
             json.dump(summary, f, indent=2)
-    failed = any(r["errors"] for r in summary["routes"].values())
+    failed = any(r["errors"] for name, r in summary["routes"].items() if name != NEIGHBOUR)
     return 1 if failed or tally.views_lost or tally.bad_indices else 0
 
 

@@ -10,6 +10,7 @@ from pydantic import Field, SecretStr, field_validator, model_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 from grasp.defaults import AUTOGRASP_BUDGET
+from service.store.base import MAX_ANSWERS
 
 if TYPE_CHECKING:
     from service.intake.frames import FrameChecks
@@ -173,6 +174,15 @@ class Settings(BaseSettings):
     planning_workers: int = Field(2, ge=1, description="grasp plans running at once")
     planning_queue: int = Field(
         16, ge=0, description="grasp plans waiting for a worker at most; more get 503"
+    )
+    client_plans: int = Field(
+        8, ge=1, description="grasp plans of one client (token) running or waiting at most; "
+        "more get 503 while other clients' plans are still admitted. Free workers go to the "
+        "waiting clients in turn"
+    )
+    max_answers: int = Field(
+        MAX_ANSWERS, ge=1, description="idempotent answers (POST /views with an Idempotency-Key) "
+        "kept per client, the oldest dropped beyond it; each lives as long as a session"
     )
     plan_cache: int = Field(
         128, ge=0, description="plans kept for a repeated GET /grasp on an unchanged mesh"

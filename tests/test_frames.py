@@ -201,3 +201,26 @@ def test_a_view_whose_background_is_all_table_is_accepted(server, table_scene):
                        timeout=60)
         assert r.status_code == 200, r.text
         sid = r.json()["session_id"]
+
+
+def test_a_plane_given_on_get_grasp_passes_the_same_checks(server, table_scene):
+    """A table raised 6 cm is refused on GET /grasp as on a view, on the query's field, and the
+    session keeps the plane it had: the next correct view is accepted."""
+    depths, masks, K, poses = table_scene
+    raised = ",".join(map(str, (0.0, 0.0, 1.0, -(TABLE_Z + 0.06))))
+    right = ",".join(map(str, PLANE))
+    with GraspClient(server.url) as client, client.session() as session:
+        session.add_view(depths[0], K, mask=masks[0], camera_pose=poses[0])
+        for kept in (None, list(PLANE)):
+            r = httpx.get(f"{server.url}/grasp", timeout=60,
+                          params={"session_id": session.id, "support_plane": raised})
+            assert r.status_code == 422, r.text
+            detail = r.json()["detail"][0]
+            assert detail["loc"] == ["query", "support_plane"], detail
+            assert "below the support plane" in detail["msg"], detail
+            assert session.info()["support_plane"] == kept  # nothing stored changed
+            r = httpx.get(f"{server.url}/grasp", timeout=60,
+                          params={"session_id": session.id, "support_plane": right})
+            assert r.status_code == 200, r.text
+        session.add_view(depths[1], K, mask=masks[1], camera_pose=poses[1])
+        assert session.info()["views"] == 2

@@ -20,7 +20,7 @@ import redis
 from service_helpers import Server, points_view, post_views
 
 from service.settings import Settings
-from service.store.base import WAIT_LEASES, ConcurrentUpdate
+from service.store.base import WAIT_LEASES, ConcurrentUpdate, KeptAnswer
 from service.store.redis_store import RedisSessionStore
 
 LEASE_S = Settings().lock_lease_s  # the default, as a deployment runs it
@@ -162,18 +162,32 @@ def test_a_lock_left_for_30_s_delays_no_other_session(replica):
 
 def test_both_stores_keep_an_idempotent_answer_for_a_sessions_life(redis_url, tmp_path):
     """Store.recall/remember, behind POST /views's Idempotency-Key: in Redis (shared by the
-    replicas) and in SQLite, gone once a session would be."""
+    replicas) and in SQLite, with the body's digest and the session; gone once a session would
+    be, or once its session is deleted; each owner keeps its newest ``max_answers``."""
     from service.store.sqlite_store import SQLiteSessionStore
 
     now = [1000.0]
     sqlite = SQLiteSessionStore(tmp_path / "s.sqlite", max_sessions=5, ttl_s=60.0,
-                                clock=lambda: now[0])
-    stores = [_store(redis_url, "idem:"), sqlite]
+                                max_answers=2, clock=lambda: now[0])
+    redis_store = RedisSessionStore(redis_url, prefix="idem:", max_sessions=5, ttl_s=60.0,
+                                    max_answers=2)
+    stores = [redis_store, sqlite]
     for s in stores:
         assert s.recall("k1") is None
-        s.remember("k1", '{"view_index": 0}')
-        assert s.recall("k1") == '{"view_index": 0}'
+        s.create("s1", model="m", state=b"x", views=1, object_seen=True, owner="a")
+        s.remember("k1", KeptAnswer('{"view_index": 0}', "d1", "s1"), owner="a")
+        assert s.recall("k1") == KeptAnswer('{"view_index": 0}', "d1", "s1")
+        s.remember("k2", KeptAnswer("{}", "d2", "s2"), owner="a")
+        s.remember("k3", KeptAnswer("{}", "d3", "s2"), owner="b")
+        assert s.recall("k1") is not None  # a's two, b's one: all kept
+        s.remember("k4", KeptAnswer("{}", "d4", "s2"), owner="a")
+        assert s.recall("k1") is None and s.recall("k2") and s.recall("k3") and s.recall("k4")
+        s.remember("k5", KeptAnswer("{}", "d5", "s1"), owner="b")
+        assert s.delete("s1")  # its answers go with it, the others stay
+        assert s.recall("k5") is None and s.recall("k4") is not None
     now[0] += 61  # the SQLite store's clock: past a session's life
-    assert stores[1].recall("k1") is None
+    assert stores[1].recall("k4") is None
     stores[1].purge_expired()
-    assert stores[0].redis.pttl(f"{stores[0].prefix}answer:k1") > 50_000  # Redis expires it
+    assert stores[0].redis.pttl(f"{stores[0].prefix}answer:k4") > 50_000  # Redis expires it
+
+

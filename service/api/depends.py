@@ -13,9 +13,11 @@ from fastapi import Depends, HTTPException, Path, Query, Request, status
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 
 from grasp_client.wire import SupportPlane
-from service.api.auth import token_problem
+from service.api.auth import token_index, token_problem
 from service.api.schemas import ErrorOut
+from service.engine.pipeline import Pipeline
 from service.services import Services
+from service.store.owned import client_id
 
 _WHY = {
     400: "the body could not be decoded as text",
@@ -50,20 +52,34 @@ _bearer = HTTPBearer(auto_error=False, description="needed when GRASP_TOKEN is s
 def require_token(
     services: ServicesDep,
     credentials: Annotated[HTTPAuthorizationCredentials | None, Depends(_bearer)],
-) -> None:
-    """401 unless the request carries ``Authorization: Bearer <GRASP_TOKEN>`` (when one is set).
+) -> str:
+    """401 unless the request carries ``Authorization: Bearer <GRASP_TOKEN>`` (when one is set);
+    the client it is (:func:`service.store.owned.client_id`, "" without tokens).
 
     :class:`service.api.middleware.TokenGate` has already checked this before the body was read;
     this dependency declares the scheme in the OpenAPI document and guards in-process callers."""
     tokens = services.settings.tokens()
     if not tokens:
-        return
+        return client_id(None)
     header = None if credentials is None else f"{credentials.scheme} {credentials.credentials}"
     problem = token_problem(header, tokens)
     if problem is not None:
         raise HTTPException(
             status.HTTP_401_UNAUTHORIZED, problem, headers={"WWW-Authenticate": "Bearer"}
         )
+    return client_id(tokens[token_index(header, tokens)])
+
+
+#: The client a request is (a route-level ``require_token``: FastAPI runs it once a request).
+ClientDep = Annotated[str, Depends(require_token)]
+
+
+def owned_sessions(services: ServicesDep, client: ClientDep) -> Pipeline:
+    """The pipeline on the request's client's sessions alone (another's are 404)."""
+    return services.pipeline.for_owner(client)
+
+
+SessionsDep = Annotated[Pipeline, Depends(owned_sessions)]
 
 
 TopK = Annotated[int, Query(ge=1, le=64, description="grasps returned, best first")]

@@ -12,9 +12,16 @@ from fastapi import APIRouter, Depends, Query, Request
 
 from grasp.planner import too_large, wire_grasp
 from grasp_client.wire import SupportPlane
-from service.api.depends import PlanQuery, ServicesDep, require_token, responses
+from service.api.depends import (
+    ClientDep,
+    PlanQuery,
+    ServicesDep,
+    SessionsDep,
+    require_token,
+    responses,
+)
 from service.api.schemas import GraspsOut
-from service.engine.pipeline import Snapshot
+from service.engine.pipeline import Pipeline, Snapshot
 from service.engine.planning import PlanRequest
 from service.intake.inputs import InputError
 from service.services import Services
@@ -25,12 +32,14 @@ router = APIRouter(dependencies=[Depends(require_token)], responses=responses(40
 @router.get("/grasp", response_model=GraspsOut, responses=responses(404, 409, 503))
 async def get_grasp(
     services: ServicesDep,
+    sessions: SessionsDep,
+    client: ClientDep,
     request: Request,
     session_id: Annotated[str, Query(min_length=1, max_length=128)],
     query: Annotated[PlanQuery, Depends()],
 ) -> GraspsOut:
     """Complete the session's current state, mesh it and plan BarrettHand grasps."""
-    return (await plan_session(services, request, session_id, query)).answer
+    return (await plan_session(services, sessions, client, request, session_id, query)).answer
 
 
 @dataclass(frozen=True)
@@ -44,11 +53,12 @@ class Planned:
 
 
 async def plan_session(
-    services: Services, request: Request, session_id: str, query: PlanQuery
+    services: Services, sessions: Pipeline, client: str, request: Request, session_id: str,
+    query: PlanQuery,
 ) -> Planned:
-    """Plan on the session's completion as ``query`` asks: the session is read once (a query's
-    support plane is stored with it under its lock, as a view's), the mesh goes to a planner
-    worker once."""
+    """Plan on the session (one of ``sessions``, the client's) as ``query`` asks: the session is
+    read once (a query's support plane is stored with it under its lock, as a view's), the mesh
+    goes to a planner worker once, in the ``client``'s turn."""
     start = time.perf_counter()
     s = services.settings
     n = s.n_candidates if query.n_candidates is None else query.n_candidates
@@ -61,7 +71,7 @@ async def plan_session(
         raise InputError(("query", "verify"), f"verify must be at most {s.max_verify} grasps "
                          f"(GRASP_MAX_VERIFY), got {tries}")
     if query.support_plane is None:
-        snapshot, mesh, timing = await services.infer(services.pipeline.grasp_mesh, session_id)
+        snapshot, mesh, timing = await services.infer(sessions.grasp_mesh, session_id)
     else:
         try:
             given = SupportPlane.parse(query.support_plane)
@@ -69,7 +79,7 @@ async def plan_session(
             raise InputError(("query", "support_plane"), str(exc)) from None
         async with services.exclusive(session_id):  # the session keeps it from now on
             snapshot, mesh, timing = await services.infer(
-                services.pipeline.grasp_mesh, session_id, given)
+                sessions.grasp_mesh, session_id, given)
     plane = None
     if snapshot.support_plane is not None:  # into the latest camera frame
         plane = snapshot.support_plane.transformed(snapshot.camera_to_world)
@@ -82,8 +92,9 @@ async def plan_session(
     asked = PlanRequest(mesh.vertices, mesh.faces, n_candidates=n, seed=s.plan_seed,
                         top_k=query.top_k, budget=s.plan_budget, support_plane=plane,
                         obstacles=snapshot.obstacles, verify=tries)
-    results, seconds, cached = await services.planner.plan(asked, gone=request.is_disconnected)
-    await services.io(services.pipeline.store.get, session_id)  # deleted while it was planned: 404
+    results, seconds, cached = await services.planner.plan(asked, client=client,
+                                                          gone=request.is_disconnected)
+    await services.io(sessions.store.get, session_id)  # deleted while it was planned: 404
     total = (time.perf_counter() - start) * 1e3
     timing["planning"] = 0.0 if cached else seconds * 1e3
     timing |= {"waiting": max(total - sum(timing.values()), 0.0), "total": total}

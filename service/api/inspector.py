@@ -24,7 +24,15 @@ from fastapi import APIRouter, Depends, Request, Response
 from fastapi.responses import FileResponse
 
 from grasp_client.wire import SupportPlane
-from service.api.depends import PathId, SceneQuery, ServicesDep, require_token, responses
+from service.api.depends import (
+    ClientDep,
+    PathId,
+    SceneQuery,
+    ServicesDep,
+    SessionsDep,
+    require_token,
+    responses,
+)
 from service.api.grasps import plan_session
 from service.api.schemas import GraspsOut, ObservedOut
 
@@ -55,10 +63,12 @@ async def view_page(session_id: PathId) -> FileResponse:
 @data_router.get(
     "/sessions/{session_id}/observed", response_model=ObservedOut, responses=responses(404, 409)
 )
-async def get_observed(session_id: PathId, services: ServicesDep) -> ObservedOut:
+async def get_observed(
+    session_id: PathId, services: ServicesDep, sessions: SessionsDep
+) -> ObservedOut:
     """The latest view's observed voxel centres and the session's obstacle voxels, in its
     camera frame (the completion's)."""
-    snapshot = await services.infer(services.pipeline.snapshot, session_id)
+    snapshot = await services.infer(sessions.snapshot, session_id)
     obstacles = np.zeros((0, 3)) if snapshot.obstacles is None else snapshot.obstacles
     return ObservedOut(
         session_id=session_id,
@@ -79,11 +89,13 @@ async def get_observed(session_id: PathId, services: ServicesDep) -> ObservedOut
 async def get_scene(
     session_id: PathId,
     services: ServicesDep,
+    sessions: SessionsDep,
+    client: ClientDep,
     request: Request,
     query: Annotated[SceneQuery, Depends()],
 ) -> Response:
     """The inspector's scene as one GLB file (latest camera frame, metres)."""
-    planned = await plan_session(services, request, session_id, query)
+    planned = await plan_session(services, sessions, client, request, session_id, query)
     data = await services.infer(scene_glb, planned.answer, planned.mesh, planned.snapshot.observed)
     return Response(
         data,

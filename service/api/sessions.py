@@ -11,7 +11,7 @@ from fastapi import APIRouter, Depends, Query, Response, status
 
 from completion.mesh import MeshFormat, export_mesh
 from completion.stream import stored_registration, stored_support_plane
-from service.api.depends import PathId, ServicesDep, require_token, responses
+from service.api.depends import PathId, ServicesDep, SessionsDep, require_token, responses
 from service.api.schemas import HealthOut, OccupancyOut, SessionOut
 from service.store.base import SessionNotFound
 
@@ -27,10 +27,12 @@ health_router = APIRouter()
 
 
 @router.get("/sessions/{session_id}", response_model=SessionOut, responses=responses(404))
-async def get_session(session_id: PathId, services: ServicesDep) -> SessionOut:
+async def get_session(
+    session_id: PathId, services: ServicesDep, sessions: SessionsDep
+) -> SessionOut:
     """A session's view count, times and the support plane it keeps."""
-    record = await services.io(services.pipeline.store.get, session_id)
-    ttl = services.pipeline.store.ttl_of(record)
+    record = await services.io(sessions.store.get, session_id)
+    ttl = sessions.store.ttl_of(record)
     plane = await services.io(stored_support_plane, record.state)
     registered, fused = await services.io(stored_registration, record.state)
     return SessionOut(
@@ -49,9 +51,11 @@ async def get_session(session_id: PathId, services: ServicesDep) -> SessionOut:
 @router.delete(
     "/sessions/{session_id}", status_code=status.HTTP_204_NO_CONTENT, responses=responses(404)
 )
-async def delete_session(session_id: PathId, services: ServicesDep) -> Response:
-    """Forget a session."""
-    store = services.pipeline.store
+async def delete_session(
+    session_id: PathId, services: ServicesDep, sessions: SessionsDep
+) -> Response:
+    """Forget a session (and the idempotent answers of its views)."""
+    store = sessions.store
     if not await services.io(store.delete, session_id):
         raise SessionNotFound(store.not_found_message(session_id))
     return Response(status_code=status.HTTP_204_NO_CONTENT)
@@ -68,10 +72,11 @@ async def delete_session(session_id: PathId, services: ServicesDep) -> Response:
 async def get_mesh(
     session_id: PathId,
     services: ServicesDep,
+    sessions: SessionsDep,
     mesh_format: Annotated[MeshFormat, Query(alias="format")] = "ply",
 ) -> Response:
     """The completed shape as a mesh in metres, in the latest view's camera frame."""
-    mesh = await services.infer(services.pipeline.mesh, session_id)
+    mesh = await services.infer(sessions.mesh, session_id)
     data = await services.infer(export_mesh, mesh, mesh_format)
     return Response(
         data,
@@ -83,9 +88,11 @@ async def get_mesh(
 @router.get(
     "/sessions/{session_id}/occupancy", response_model=OccupancyOut, responses=responses(404, 409)
 )
-async def get_occupancy(session_id: PathId, services: ServicesDep) -> OccupancyOut:
+async def get_occupancy(
+    session_id: PathId, services: ServicesDep, sessions: SessionsDep
+) -> OccupancyOut:
     """The completion thresholded to a 40³ grid (packed bits) with its ``grid_to_camera``."""
-    snapshot, grid = await services.infer(services.pipeline.occupancy, session_id)
+    snapshot, grid = await services.infer(sessions.occupancy, session_id)
     return OccupancyOut(
         session_id=session_id,
         views=snapshot.record.views,

@@ -12,6 +12,7 @@ compare-and-swap on the view count is what guarantees each view is applied once 
 
 from __future__ import annotations
 
+import copy
 import hashlib
 import time
 import uuid
@@ -26,9 +27,10 @@ from completion.mesh import grid_to_mesh
 from completion.stream import Completion, CompletionStream, ViewResult
 from grasp.search.obstacles import seen_others
 from grasp_client.wire import SupportPlane
-from service.intake.frames import FrameChecks, Previous, check_view
+from service.intake.frames import FrameChecks, Previous, check_plane, check_view
 from service.intake.inputs import DecodedView, InputError
 from service.store.base import ConcurrentUpdate, SessionRecord, Store
+from service.store.owned import OwnedStore
 
 #: How often a view is re-applied when another process changed the session meanwhile.
 UPDATE_ATTEMPTS = 5
@@ -92,6 +94,13 @@ class Pipeline:
         self.max_views = max_views if grows else None
         self.frame_checks = frame_checks  # None: views' frames are not checked
         self.registered = registered  # a new session fuses its posed views (completion.evidence)
+
+    def for_owner(self, owner: str) -> Pipeline:
+        """This pipeline on the sessions of the client ``owner`` alone
+        (:class:`service.store.owned.OwnedStore`): what every route with a session runs."""
+        owned = copy.copy(self)
+        owned.store = OwnedStore(self.store, owner)
+        return owned
 
     # ---------------------------------------------------------------------------- views
     def add_view(self, session_id: str | None, view: DecodedView) -> tuple[str, ViewResult]:
@@ -172,6 +181,9 @@ class Pipeline:
         as for a view); nothing is written when the session already keeps the same plane.
         Raises ConcurrentUpdate when another process changed the session meanwhile."""
         before = stream.support_plane
+        if self.frame_checks is not None and stream.seen and stream.camera_to_world is not None:
+            check_plane(plane, stream.observed_points(), stream.camera_to_world,
+                        self.frame_checks)  # a refused plane: nothing stored changes
         try:
             stream.set_support_plane(plane)
         except ValueError as exc:  # no camera poses

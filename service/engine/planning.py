@@ -7,10 +7,13 @@ runs it in threads instead (what the in-process tests use). This module does not
 so the worker processes stay small.
 
 Requests beyond the workers wait in a bounded queue (``GRASP_PLANNING_QUEUE``; more get 503 at
-once rather than piling up), a request whose client has gone while it waited is dropped before
-it reaches a worker, and a plan is kept (``GRASP_PLAN_CACHE`` plans, least recently used out)
-so that asking again about an unchanged mesh with the same options costs nothing: the inspector
-page, ``scene.glb`` and a robot polling ``GET /grasp`` between views all hit it.
+once rather than piling up; one client at most ``GRASP_CLIENT_PLANS`` of them, so that it cannot
+fill the queue for the others). A free worker goes to the waiting clients in turn
+(:class:`FairSlots`: round-robin over clients, first come first served within one). A request
+whose client has gone while it waited is dropped before it reaches a worker, and a plan is kept
+(``GRASP_PLAN_CACHE`` plans, least recently used out, each client's its own) so that asking
+again about an unchanged mesh with the same options costs nothing: the inspector page,
+``scene.glb`` and a robot polling ``GET /grasp`` between views all hit it.
 
 With ``verify=N`` (:mod:`grasp.physics.verify`) the plan ranks every autograsped grasp, a second
 worker computes the completion's convex pieces meanwhile (:func:`decompose`, into the disk cache the
@@ -27,10 +30,11 @@ import hashlib
 import logging
 import multiprocessing
 import time
-from collections import OrderedDict
+from collections import OrderedDict, deque
 from collections.abc import Awaitable, Callable
 from concurrent.futures import ProcessPoolExecutor
 from concurrent.futures.process import BrokenProcessPool
+from contextlib import asynccontextmanager
 from dataclasses import dataclass
 from functools import partial
 
@@ -126,7 +130,59 @@ def _import_planner() -> None:
 
 
 class PlannerBusy(RuntimeError):
-    """More grasp plans are waiting than the queue holds."""
+    """More grasp plans are waiting than the queue holds, or than one client may have."""
+
+
+class FairSlots:
+    """``n`` worker slots, taken by clients (any hashable name, "" for everyone without tokens):
+    a freed slot goes to the next client in turn that is waiting (round-robin), and within a client
+    to its longest waiting call. One client's many calls therefore delay another's by at most the
+    calls already running, not by its whole queue."""
+
+    def __init__(self, n: int) -> None:
+        self.free = n
+        self._waiting: OrderedDict[str, deque[asyncio.Future]] = OrderedDict()
+
+    @asynccontextmanager
+    async def take(self, client: str):
+        if self.free and not self._waiting:
+            self.free -= 1
+        else:
+            turn = asyncio.get_running_loop().create_future()
+            self._waiting.setdefault(client, deque()).append(turn)
+            try:
+                await turn
+            except asyncio.CancelledError:
+                if turn.done() and not turn.cancelled():
+                    self._hand_on()  # given the slot as it was cancelled: pass it on
+                else:
+                    self._drop(client, turn)
+                raise
+        try:
+            yield
+        finally:
+            self._hand_on()
+
+    def _hand_on(self) -> None:
+        """A slot is free: to the first waiting client, which then goes to the back."""
+        while self._waiting:
+            client, turns = next(iter(self._waiting.items()))
+            turn = turns.popleft()
+            if turns:
+                self._waiting.move_to_end(client)
+            else:
+                del self._waiting[client]
+            if not turn.done():
+                turn.set_result(None)
+                return
+        self.free += 1
+
+    def _drop(self, client: str, turn: asyncio.Future) -> None:
+        turns = self._waiting.get(client)
+        if turns is not None and turn in turns:
+            turns.remove(turn)
+            if not turns:
+                del self._waiting[client]
 
 
 class ClientGone(RuntimeError):
@@ -139,13 +195,16 @@ class Planner:
 
     def __init__(
         self, workers: int, *, processes: bool, queue: int, cache: int,
+        per_client: int | None = None,
     ) -> None:
         self.workers = workers
         self.processes = processes
         self.queue = queue
+        self.per_client = workers + queue if per_client is None else per_client
         self._pool: ProcessPoolExecutor | None = None
         self._pending = 0  # plans admitted: running or waiting
-        self._running = asyncio.Semaphore(workers)
+        self._pending_of: dict[str, int] = {}  # the same, by client
+        self._slots = FairSlots(workers)
         self._cache: OrderedDict[str, tuple[list, float]] = OrderedDict()
         self._cache_size = cache
         self.cache_hits = 0
@@ -162,13 +221,15 @@ class Planner:
         return self._pool
 
     async def plan(
-        self, request: PlanRequest, *, gone: Callable[[], Awaitable[bool]] | None = None
+        self, request: PlanRequest, *, client: str = "",
+        gone: Callable[[], Awaitable[bool]] | None = None,
     ) -> tuple[list, float, bool]:
         """The plan, its planning seconds (verification included) and whether it came from the
-        cache or from the same plan another request was computing (then the seconds are those
-        of the original plan): identical concurrent plans are computed once. ``gone``: an async
-        check that the client disconnected, asked once a worker is free."""
-        key = request.key
+        cache or from the same plan another request of the same ``client`` was computing (then
+        the seconds are those of the original plan): identical concurrent plans are computed
+        once. Its work waits for worker slots in ``client``'s turn (:class:`FairSlots`).
+        ``gone``: an async check that the client disconnected, asked once a worker is free."""
+        key = f"{client}/{request.key}"  # a client learns nothing of another's plans
         if key in self._cache:
             self._cache.move_to_end(key)
             self.cache_hits += 1
@@ -181,11 +242,11 @@ class Planner:
                 if not (shared.done() and (shared.cancelled() or shared.exception())):
                     raise  # this request was cancelled itself
                 # the computing request's client went, or its worker: plan for this one
-                return await self.plan(request, gone=gone)
+                return await self.plan(request, client=client, gone=gone)
         shared = asyncio.get_running_loop().create_future()
         self._inflight[key] = shared
         try:
-            result = await self._admitted(request, gone)
+            result = await self._admitted(request, key, client, gone)
         except asyncio.CancelledError:
             shared.cancel()
             raise
@@ -199,50 +260,60 @@ class Planner:
             del self._inflight[key]
         return (*result, False)
 
-    async def _admitted(self, r: PlanRequest, gone) -> tuple[list, float]:
-        """The plan run by a worker once admitted (bounded queue), verified, then cached."""
+    async def _admitted(self, r: PlanRequest, key: str, client: str, gone) -> tuple[list, float]:
+        """The plan run by a worker once admitted (bounded queue, and a bound per client),
+        verified, then cached under ``key``."""
         if self._pending >= self.workers + self.queue:
             raise PlannerBusy(
                 f"{self._pending} grasp plans are running or waiting (at most "
                 f"{self.workers + self.queue}); try again shortly"
             )
+        if self._pending_of.get(client, 0) >= self.per_client:
+            raise PlannerBusy(
+                f"this client has {self.per_client} grasp plans running or waiting, the most one "
+                "client may (GRASP_CLIENT_PLANS); try again once one is answered"
+            )
         self._pending += 1
+        self._pending_of[client] = self._pending_of.get(client, 0) + 1
         pieces = None
         try:
-            async with self._running:
+            async with self._slots.take(client):
                 if gone is not None and await gone():
                     raise ClientGone("the client disconnected while its plan waited")
                 if r.verify:  # the lift test's convex pieces, in another worker meanwhile
                     pieces = asyncio.ensure_future(
-                        self._slot(partial(decompose, r.vertices, r.faces)))
+                        self._slot(partial(decompose, r.vertices, r.faces), client))
                 result = await self._call(partial(plan_grasps, r))
             if r.verify:
                 start = time.perf_counter()
                 await pieces
                 ranked = await self._verified(r.vertices, r.faces, result[0], r.verify,
-                                              r.support_plane, r.seed)
+                                              r.support_plane, r.seed, client)
                 result = (ranked[:r.top_k], result[1] + time.perf_counter() - start)
         finally:
             self._pending -= 1
+            self._pending_of[client] -= 1
+            if not self._pending_of[client]:
+                del self._pending_of[client]
             if pieces is not None and not pieces.done():
                 pieces.cancel()  # the plan failed: nobody needs the pieces
             elif pieces is not None and not pieces.cancelled():
                 pieces.exception()  # retrieved: no "never retrieved" warning
         if self._cache_size:
-            self._cache[r.key] = result
+            self._cache[key] = result
             while len(self._cache) > self._cache_size:
                 self._cache.popitem(last=False)
         return result
 
-    async def _verified(self, vertices, faces, ranked, n, support_plane, seed) -> list:
+    async def _verified(self, vertices, faces, ranked, n, support_plane, seed, client) -> list:
         """:func:`grasp.ranking.select.verified`, each grasp's trials spread over the workers: every
-        trial takes a worker slot of its own, in turn with other requests' plans (fair share)."""
+        trial takes a worker slot of its own, in ``client``'s turn (:class:`FairSlots`)."""
         from grasp.ranking.select import verified
 
         loop = asyncio.get_running_loop()
 
         def run(jobs):  # called from a worker thread: the trials of one grasp, at once
-            calls = [self._slot(partial(lift_trial, vertices, faces, g, plane, t))
+            calls = [self._slot(partial(lift_trial, vertices, faces, g, plane, t), client)
                      for _, g, plane, t in jobs]
             future = asyncio.run_coroutine_threadsafe(_gather(calls), loop)
             return future.result()
@@ -250,15 +321,15 @@ class Planner:
         return await anyio.to_thread.run_sync(
             lambda: verified(ranked, n, mesh=None, support_plane=support_plane, seed=seed, run=run))
 
-    async def _slot(self, call):
-        """``call`` in a worker (process or thread) once a worker slot is free."""
-        async with self._running:
+    async def _slot(self, call, client: str):
+        """``call`` in a worker (process or thread) once ``client``'s turn gives it a slot."""
+        async with self._slots.take(client):
             return await self._call(call)
 
     async def _call(self, call):
         """``call`` in a worker process, or a thread (``processes=False``)."""
         if not self.processes:
-            return await anyio.to_thread.run_sync(call)  # self._running bounds the workers
+            return await anyio.to_thread.run_sync(call)  # the slots bound the workers
         pool = self._executor()
         try:
             return await asyncio.get_running_loop().run_in_executor(pool, call)

@@ -78,11 +78,26 @@ def check_view(view: DecodedView, plane: SupportPlane | None, previous: Previous
     if problem is None:
         return
     loc, said = problem
-    fix = _likely_mistake(view, plane, previous, limits)
+    fix = _likely_mistake(view.points, view.background, pose, plane, previous, limits)
     if fix is None:
         raise InputError(loc, f"{said} ({FRAMES})")
     field, advice = fix  # the field to correct is the mistake's, whichever check noticed it
     raise InputError(("body", field), f"{said}; {advice}")
+
+
+def check_plane(plane: SupportPlane, points: np.ndarray, camera_to_world: np.ndarray,
+                limits: FrameChecks) -> None:
+    """Refuse (:class:`InputError` on the query's ``support_plane``) a plane given apart from a
+    view (``GET /grasp``, the inspector's scene) that contradicts what the session's latest view
+    saw (``points``, its camera frame; ``camera_to_world``, its pose): the plane checks of
+    :func:`check_view`, with no depth image to show the table."""
+    problem = _problem(points, None, camera_to_world, plane, None, limits)
+    if problem is None:
+        return
+    said = problem[1].replace("camera_pose and support_plane put", "support_plane puts")
+    fix = _likely_mistake(points, None, camera_to_world, plane, None, limits, poses=False)
+    raise InputError(("query", "support_plane"), f"{said} ({FRAMES})" if fix is None
+                     else f"{said}; {fix[1]}")
 
 
 def _check_distance(pose: np.ndarray, previous: Previous | None, limits: FrameChecks) -> None:
@@ -148,11 +163,11 @@ def _table_seen(background, pose, plane, limits) -> bool | None:
     return share >= TABLE_SHARE and share >= min(TABLE_CONCENTRATION * chance, 0.5)
 
 
-def _likely_mistake(view: DecodedView, plane, previous, limits) -> tuple[str, str] | None:
+def _likely_mistake(points, background, pose, plane, previous, limits,
+                    poses: bool = True) -> tuple[str, str] | None:
     """The first common mistake whose undoing makes the view consistent: the field it is in, and
-    advice."""
-    pose = view.camera_to_world
-    alternatives: list[tuple[str, str, Callable[[], tuple]]] = [
+    advice (``poses=False``: the plane's mistakes alone)."""
+    alternatives: list[tuple[str, str, Callable[[], tuple]]] = [] if not poses else [
         ("camera_pose", "camera_pose looks like world→camera: send camera→world (its inverse)",
          lambda: (np.linalg.inv(pose), plane)),
         ("camera_pose", "camera_pose looks like an OpenGL camera (y up, z backward): the camera "
@@ -171,8 +186,7 @@ def _likely_mistake(view: DecodedView, plane, previous, limits) -> tuple[str, st
         ]
     for field, advice, undo in alternatives:
         other_pose, other_plane = undo()
-        if _problem(view.points, view.background, other_pose, other_plane, previous,
-                    limits) is None:
+        if _problem(points, background, other_pose, other_plane, previous, limits) is None:
             return field, advice
     return None
 

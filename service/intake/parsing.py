@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import asyncio
 import email.message
+import hashlib
 import json
 import math
 import multiprocessing as mp
@@ -53,6 +54,7 @@ TOO_DEEP = ("the body's JSON is nested too deeply (over about 1,000 levels); a v
 class ParsedView:
     session_id: str | None
     view: DecodedView
+    digest: str = ""  # SHA-256 of the body's bytes: an Idempotency-Key's answer is for this body
 
 
 #: A 422 lists at most this many errors, then one entry counting the rest: a body of a million
@@ -153,7 +155,7 @@ def parse_view(raw: bytes, content_type: str | None, limits: DecodeLimits) -> tu
         decoded = decode_view(view, limits)
     except InputError as exc:
         return "error", 422, [{"loc": list(exc.loc), "msg": exc.message, "type": "value_error"}]
-    return "ok", ParsedView(view.session_id, decoded)
+    return "ok", ParsedView(view.session_id, decoded, hashlib.sha256(raw).hexdigest())
 
 
 #: The warm-up body's limits: it is small and plausible whatever the settings say.

@@ -41,6 +41,9 @@ LEASE_S = 5.0
 WAIT_LEASES = 2.0
 #: Seconds between two tries of a waiting view.
 POLL_S = 0.05
+#: Idempotent answers kept per client (the default of ``GRASP_MAX_ANSWERS``): beyond it the
+#: oldest go, so a client that sends a new key with every view cannot fill the store.
+MAX_ANSWERS = 10_000
 
 
 class NoLease:
@@ -60,6 +63,17 @@ class SessionRecord:
     views: int
     object_seen: bool
     state: bytes  # CompletionStream.to_bytes()
+    owner: str = ""  # the client that made it (service.store.owned.client_id); "" without tokens
+
+
+@dataclass(frozen=True)
+class KeptAnswer:
+    """What an ``Idempotency-Key`` keeps: the first answer (JSON text), the SHA-256 of the request
+    body that got it, and the session it belongs to (deleted with it)."""
+
+    answer: str
+    digest: str
+    session_id: str
 
 
 class Store:
@@ -67,8 +81,10 @@ class Store:
 
     clock: Callable[[], float]
 
-    def __init__(self, *, max_sessions: int, ttl_s: float, unseen_ttl_s: float | None) -> None:
+    def __init__(self, *, max_sessions: int, ttl_s: float, unseen_ttl_s: float | None,
+                 max_answers: int = MAX_ANSWERS) -> None:
         self.max_sessions = max_sessions
+        self.max_answers = max_answers  # idempotent answers kept per client, the oldest out
         self.ttl_s = ttl_s
         # a session that never saw an object lives this long (it cannot answer anything yet)
         self.unseen_ttl_s = ttl_s if unseen_ttl_s is None else min(unseen_ttl_s, ttl_s)
@@ -87,9 +103,10 @@ class Store:
         raise NotImplementedError
 
     def create(
-        self, session_id: str, *, model: str, state: bytes, views: int, object_seen: bool
+        self, session_id: str, *, model: str, state: bytes, views: int, object_seen: bool,
+        owner: str = "",
     ) -> SessionRecord:
-        """Insert a new session; raises StoreFull when ``max_sessions`` are live."""
+        """Insert a new session of ``owner``; raises StoreFull when ``max_sessions`` are live."""
         raise NotImplementedError
 
     def update(
@@ -103,19 +120,22 @@ class Store:
         raise NotImplementedError
 
     def delete(self, session_id: str) -> bool:
-        """Delete a session; False when there was none."""
+        """Delete a session and the idempotent answers that belong to it; False when there was
+        none."""
         raise NotImplementedError
 
     def purge_expired(self) -> int:
         """Delete every expired session; returns how many."""
         raise NotImplementedError
 
-    def recall(self, key: str) -> str | None:
-        """The answer (JSON text) kept under an idempotency key, None if none or expired."""
+    def recall(self, key: str) -> KeptAnswer | None:
+        """What an idempotency key keeps, None if nothing (never seen, expired, its session
+        deleted, or pushed out by ``max_answers`` newer ones of its owner)."""
         raise NotImplementedError
 
-    def remember(self, key: str, answer: str) -> None:
-        """Keep ``answer`` under the idempotency ``key`` for ``ttl_s`` (a session's life)."""
+    def remember(self, key: str, kept: KeptAnswer, *, owner: str = "") -> None:
+        """Keep ``kept`` under the idempotency ``key`` for ``ttl_s`` (a session's life) or until
+        its session is deleted; ``owner`` keeps at most ``max_answers``, the oldest dropped."""
         raise NotImplementedError
 
     def try_lock(self, session_id: str, *, lease_s: float = LEASE_S):

@@ -7,8 +7,11 @@ Layout, all under one key prefix (``grasp:`` by default):
   (the shorter ``unseen_ttl_s`` while no view has shown the object);
 - ``<prefix>live``: a sorted set of the session ids scored by their expiry time, for
   ``max_sessions`` and ``/healthz`` (entries past their score are dropped on every count);
-- ``<prefix>answer:<key>``: the answer to a view sent with an ``Idempotency-Key``, kept as long as
-  a session lives;
+- ``<prefix>answer:<key>``: a hash (``answer``, ``digest``, ``session``) kept for a view sent with
+  an ``Idempotency-Key`` (the key scoped by its client, :mod:`service.store.owned`) as long as a
+  session lives; ``<prefix>answers:<id>`` is the set of a session's answer keys, deleted with it,
+  and ``<prefix>answers-of:<owner>`` a sorted set of a client's answer keys by time, which keeps
+  its newest ``max_answers``;
 - ``<prefix>lock:<id>``: a redis-py lock held while one replica applies a view to the session,
   so that views sent to different replicas queue instead of retrying. It is a short lease
   (``GRASP_LOCK_LEASE_S``, 5 s), renewed from a background thread while its holder works
@@ -35,9 +38,11 @@ import redis
 
 from service.store.base import (
     LEASE_S,
+    MAX_ANSWERS,
     POLL_S,
     WAIT_LEASES,
     ConcurrentUpdate,
+    KeptAnswer,
     SessionNotFound,
     SessionRecord,
     Store,
@@ -45,12 +50,13 @@ from service.store.base import (
 
 log = logging.getLogger(__name__)
 
-#: KEYS: session hash, live set. ARGV: id, now, max, model, views, seen, state, ttl_ms, expiry.
+#: KEYS: session hash, live set. ARGV: id, now, max, model, views, seen, state, ttl_ms, expiry,
+#: owner.
 _CREATE = """
 redis.call('ZREMRANGEBYSCORE', KEYS[2], '-inf', ARGV[2])
 if redis.call('ZCARD', KEYS[2]) >= tonumber(ARGV[3]) then return 'full' end
 redis.call('HSET', KEYS[1], 'model', ARGV[4], 'created', ARGV[2], 'updated', ARGV[2],
-           'views', ARGV[5], 'seen', ARGV[6], 'state', ARGV[7])
+           'views', ARGV[5], 'seen', ARGV[6], 'state', ARGV[7], 'owner', ARGV[10])
 redis.call('PEXPIRE', KEYS[1], ARGV[8])
 redis.call('ZADD', KEYS[2], ARGV[9], ARGV[1])
 return 'ok'
@@ -68,7 +74,33 @@ redis.call('ZADD', KEYS[2], ARGV[8], ARGV[1])
 return 'ok'
 """
 
-_FIELDS = ("model", "created", "updated", "views", "seen", "state")
+#: KEYS: session hash, live set, the session's answer set. ARGV: id.
+_DELETE = """
+local deleted = redis.call('DEL', KEYS[1])
+redis.call('ZREM', KEYS[2], ARGV[1])
+for _, key in ipairs(redis.call('SMEMBERS', KEYS[3])) do redis.call('DEL', key) end
+redis.call('DEL', KEYS[3])
+return deleted
+"""
+
+#: KEYS: answer hash, its session's answer set, its owner's answers by time.
+#: ARGV: answer, digest, session id, ttl_ms, now, the oldest time still alive, max_answers.
+_REMEMBER = """
+redis.call('HSET', KEYS[1], 'answer', ARGV[1], 'digest', ARGV[2], 'session', ARGV[3])
+redis.call('PEXPIRE', KEYS[1], ARGV[4])
+redis.call('SADD', KEYS[2], KEYS[1])
+redis.call('PEXPIRE', KEYS[2], ARGV[4])
+redis.call('ZADD', KEYS[3], ARGV[5], KEYS[1])
+redis.call('PEXPIRE', KEYS[3], ARGV[4])
+redis.call('ZREMRANGEBYSCORE', KEYS[3], '-inf', '(' .. ARGV[6])
+local over = redis.call('ZCARD', KEYS[3]) - tonumber(ARGV[7])
+if over > 0 then
+  for _, key in ipairs(redis.call('ZRANGE', KEYS[3], 0, over - 1)) do redis.call('DEL', key) end
+  redis.call('ZREMRANGEBYRANK', KEYS[3], 0, over - 1)
+end
+"""
+
+_FIELDS = ("model", "created", "updated", "views", "seen", "state", "owner")
 
 class Lease:
     """This process's hold on a session's lock: a thread renews it every third of the lease
@@ -140,9 +172,11 @@ class RedisSessionStore(Store):
         ttl_s: float,
         unseen_ttl_s: float | None = None,
         prefix: str = "grasp:",
+        max_answers: int = MAX_ANSWERS,
         clock: Callable[[], float] = time.time,
     ) -> None:
-        super().__init__(max_sessions=max_sessions, ttl_s=ttl_s, unseen_ttl_s=unseen_ttl_s)
+        super().__init__(max_sessions=max_sessions, ttl_s=ttl_s, unseen_ttl_s=unseen_ttl_s,
+                         max_answers=max_answers)
         self.url = url
         self.prefix = prefix
         self.clock = clock
@@ -153,6 +187,8 @@ class RedisSessionStore(Store):
             raise ConnectionError(f"cannot reach the session store at {url}: {exc}") from exc
         self._create = self.redis.register_script(_CREATE)
         self._update = self.redis.register_script(_UPDATE)
+        self._delete = self.redis.register_script(_DELETE)
+        self._remember = self.redis.register_script(_REMEMBER)
         self._live = f"{prefix}live"
 
     @property
@@ -171,7 +207,7 @@ class RedisSessionStore(Store):
         values = self.redis.hmget(self._key(session_id), _FIELDS)
         if values[0] is None:
             raise SessionNotFound(self.not_found_message(session_id))
-        model, created, updated, views, seen, state = values
+        model, created, updated, views, seen, state, owner = values
         return SessionRecord(
             session_id,
             model.decode(),
@@ -180,6 +216,7 @@ class RedisSessionStore(Store):
             int(views),
             seen == b"1",
             bytes(state),
+            (owner or b"").decode(),
         )  # Redis's own expiry decides when it is gone
 
     def count(self) -> int:
@@ -191,18 +228,19 @@ class RedisSessionStore(Store):
 
     # ---------------------------------------------------------------------------- writes
     def create(
-        self, session_id: str, *, model: str, state: bytes, views: int, object_seen: bool
+        self, session_id: str, *, model: str, state: bytes, views: int, object_seen: bool,
+        owner: str = "",
     ) -> SessionRecord:
         now = self.clock()
         ttl_ms, expiry = self._expiry(object_seen, now)
         answer = self._create(
             keys=[self._key(session_id), self._live],
             args=[session_id, repr(now), self.max_sessions, model, views, int(object_seen),
-                  state, ttl_ms, repr(expiry)],
+                  state, ttl_ms, repr(expiry), owner],
         )  # fmt: skip
         if answer == b"full":
             raise self._full()
-        return SessionRecord(session_id, model, now, now, views, object_seen, state)
+        return SessionRecord(session_id, model, now, now, views, object_seen, state, owner)
 
     def update(
         self, record: SessionRecord, *, state: bytes, views: int, object_seen: bool
@@ -219,22 +257,24 @@ class RedisSessionStore(Store):
         if answer == b"conflict":
             raise ConcurrentUpdate(f"session {record.id!r} changed while a view was applied")
         return SessionRecord(
-            record.id, record.model, record.created, now, views, object_seen, state
+            record.id, record.model, record.created, now, views, object_seen, state, record.owner
         )
 
     def delete(self, session_id: str) -> bool:
-        with self.redis.pipeline() as pipe:  # MULTI/EXEC
-            pipe.delete(self._key(session_id))
-            pipe.zrem(self._live, session_id)
-            deleted, _ = pipe.execute()
-        return deleted > 0
+        keys = [self._key(session_id), self._live, f"{self.prefix}answers:{session_id}"]
+        return int(self._delete(keys=keys, args=[session_id])) > 0
 
-    def recall(self, key: str) -> str | None:
-        answer = self.redis.get(f"{self.prefix}answer:{key}")
-        return None if answer is None else answer.decode()
+    def recall(self, key: str) -> KeptAnswer | None:
+        values = self.redis.hmget(f"{self.prefix}answer:{key}", ("answer", "digest", "session"))
+        return None if values[0] is None else KeptAnswer(*(v.decode() for v in values))
 
-    def remember(self, key: str, answer: str) -> None:
-        self.redis.set(f"{self.prefix}answer:{key}", answer, px=int(1000 * self.ttl_s))
+    def remember(self, key: str, kept: KeptAnswer, *, owner: str = "") -> None:
+        now = self.clock()
+        keys = [f"{self.prefix}answer:{key}", f"{self.prefix}answers:{kept.session_id}",
+                f"{self.prefix}answers-of:{owner}"]
+        self._remember(keys=keys, args=[kept.answer, kept.digest, kept.session_id,
+                                        max(1, round(1000 * self.ttl_s)), repr(now),
+                                        repr(now - self.ttl_s), self.max_answers])
 
     def purge_expired(self) -> int:
         """Redis deletes expired sessions itself; this drops their ids from the live set."""

@@ -28,6 +28,7 @@ def open_store(settings: Settings) -> Store:
         max_sessions=settings.max_sessions,
         ttl_s=settings.session_ttl_s,
         unseen_ttl_s=settings.unseen_session_ttl_s,
+        max_answers=settings.max_answers,
     )
     if settings.store_url is not None:
         return RedisSessionStore(settings.store_url, **limits)

@@ -14,7 +14,14 @@ from collections.abc import Callable
 from contextlib import closing
 from pathlib import Path
 
-from service.store.base import ConcurrentUpdate, SessionNotFound, SessionRecord, Store
+from service.store.base import (
+    MAX_ANSWERS,
+    ConcurrentUpdate,
+    KeptAnswer,
+    SessionNotFound,
+    SessionRecord,
+    Store,
+)
 
 log = logging.getLogger(__name__)
 
@@ -28,12 +35,25 @@ CREATE TABLE IF NOT EXISTS sessions (
     object_seen INTEGER NOT NULL,
     state BLOB NOT NULL
 );
-CREATE INDEX IF NOT EXISTS sessions_updated ON sessions (updated);
 CREATE TABLE IF NOT EXISTS answers (
     key TEXT PRIMARY KEY,
     answer TEXT NOT NULL,
     expires REAL NOT NULL
 );
+"""
+
+#: Columns added since the first schema: a file written before them gains them when opened.
+_ADDED = (
+    ("sessions", "owner", "TEXT NOT NULL DEFAULT ''"),
+    ("answers", "digest", "TEXT NOT NULL DEFAULT ''"),
+    ("answers", "session", "TEXT NOT NULL DEFAULT ''"),
+    ("answers", "owner", "TEXT NOT NULL DEFAULT ''"),
+)
+
+_INDEXES = """
+CREATE INDEX IF NOT EXISTS sessions_updated ON sessions (updated);
+CREATE INDEX IF NOT EXISTS answers_session ON answers (session);
+CREATE INDEX IF NOT EXISTS answers_owner ON answers (owner, expires);
 """
 
 
@@ -51,9 +71,11 @@ class SQLiteSessionStore(Store):
         max_sessions: int,
         ttl_s: float,
         unseen_ttl_s: float | None = None,
+        max_answers: int = MAX_ANSWERS,
         clock: Callable[[], float] = time.time,
     ) -> None:
-        super().__init__(max_sessions=max_sessions, ttl_s=ttl_s, unseen_ttl_s=unseen_ttl_s)
+        super().__init__(max_sessions=max_sessions, ttl_s=ttl_s, unseen_ttl_s=unseen_ttl_s,
+                         max_answers=max_answers)
         self.path = Path(path)
         self.clock = clock
         self.path.parent.mkdir(parents=True, exist_ok=True)
@@ -61,6 +83,10 @@ class SQLiteSessionStore(Store):
             con.execute("PRAGMA auto_vacuum=INCREMENTAL")  # lets purges give the space back
             con.execute("PRAGMA journal_mode=WAL")
             con.executescript(_SCHEMA)
+            for table, column, declared in _ADDED:
+                if column not in {row[1] for row in con.execute(f"PRAGMA table_info({table})")}:
+                    con.execute(f"ALTER TABLE {table} ADD COLUMN {column} {declared}")
+            con.executescript(_INDEXES)
 
     @property
     def where(self) -> str:
@@ -76,13 +102,13 @@ class SQLiteSessionStore(Store):
         """The live session; raises SessionNotFound (an expired one is deleted on the way)."""
         with closing(self._connect()) as con:
             row = con.execute(
-                "SELECT id, model, created, updated, views, object_seen, state "
+                "SELECT id, model, created, updated, views, object_seen, state, owner "
                 "FROM sessions WHERE id = ?",
                 (session_id,),
             ).fetchone()
             if row is None:
                 raise SessionNotFound(self.not_found_message(session_id))
-            record = SessionRecord(*row[:5], bool(row[5]), bytes(row[6]))
+            record = SessionRecord(*row[:5], bool(row[5]), bytes(row[6]), row[7])
             if self._expired(record.updated, record.object_seen):
                 con.execute(
                     "DELETE FROM sessions WHERE id = ? AND updated = ?",
@@ -107,7 +133,8 @@ class SQLiteSessionStore(Store):
 
     # ---------------------------------------------------------------------------- writes
     def create(
-        self, session_id: str, *, model: str, state: bytes, views: int, object_seen: bool
+        self, session_id: str, *, model: str, state: bytes, views: int, object_seen: bool,
+        owner: str = "",
     ) -> SessionRecord:
         now = self.clock()
         with closing(self._connect()) as con:
@@ -118,15 +145,15 @@ class SQLiteSessionStore(Store):
                 if n >= self.max_sessions:
                     raise self._full()
                 con.execute(
-                    "INSERT INTO sessions (id, model, created, updated, views, object_seen, state)"
-                    " VALUES (?, ?, ?, ?, ?, ?, ?)",
-                    (session_id, model, now, now, views, int(object_seen), state),
+                    "INSERT INTO sessions (id, model, created, updated, views, object_seen, state,"
+                    " owner) VALUES (?, ?, ?, ?, ?, ?, ?, ?)",
+                    (session_id, model, now, now, views, int(object_seen), state, owner),
                 )
                 con.execute("COMMIT")
             except BaseException:
                 con.execute("ROLLBACK")
                 raise
-        return SessionRecord(session_id, model, now, now, views, object_seen, state)
+        return SessionRecord(session_id, model, now, now, views, object_seen, state, owner)
 
     def update(
         self, record: SessionRecord, *, state: bytes, views: int, object_seen: bool
@@ -144,25 +171,40 @@ class SQLiteSessionStore(Store):
                     raise SessionNotFound(self.not_found_message(record.id))
                 raise ConcurrentUpdate(f"session {record.id!r} changed while a view was applied")
         return SessionRecord(
-            record.id, record.model, record.created, now, views, object_seen, state
+            record.id, record.model, record.created, now, views, object_seen, state, record.owner
         )
 
     def delete(self, session_id: str) -> bool:
         with closing(self._connect()) as con:
             cursor = con.execute("DELETE FROM sessions WHERE id = ?", (session_id,))
+            con.execute("DELETE FROM answers WHERE session = ?", (session_id,))
             con.executescript("PRAGMA incremental_vacuum;")  # (executescript steps it to the end)
         return cursor.rowcount > 0
 
-    def recall(self, key: str) -> str | None:
+    def recall(self, key: str) -> KeptAnswer | None:
         with closing(self._connect()) as con:
-            row = con.execute("SELECT answer FROM answers WHERE key = ? AND expires > ?",
-                              (key, self.clock())).fetchone()
-        return None if row is None else str(row[0])
+            row = con.execute("SELECT answer, digest, session FROM answers "
+                              "WHERE key = ? AND expires > ?", (key, self.clock())).fetchone()
+        return None if row is None else KeptAnswer(*map(str, row))
 
-    def remember(self, key: str, answer: str) -> None:
+    def remember(self, key: str, kept: KeptAnswer, *, owner: str = "") -> None:
         with closing(self._connect()) as con:
-            con.execute("INSERT OR REPLACE INTO answers (key, answer, expires) VALUES (?, ?, ?)",
-                        (key, answer, self.clock() + self.ttl_s))
+            con.execute("BEGIN IMMEDIATE")
+            try:
+                con.execute("INSERT OR REPLACE INTO answers (key, answer, expires, digest, "
+                            "session, owner) VALUES (?, ?, ?, ?, ?, ?)",
+                            (key, kept.answer, self.clock() + self.ttl_s, kept.digest,
+                             kept.session_id, owner))
+                (n,) = con.execute("SELECT COUNT(*) FROM answers WHERE owner = ?",
+                                   (owner,)).fetchone()
+                if n > self.max_answers:  # the owner's oldest go
+                    con.execute("DELETE FROM answers WHERE key IN (SELECT key FROM answers "
+                                "WHERE owner = ? ORDER BY expires LIMIT ?)",
+                                (owner, n - self.max_answers))
+                con.execute("COMMIT")
+            except BaseException:
+                con.execute("ROLLBACK")
+                raise
 
     def purge_expired(self) -> int:
         with closing(self._connect()) as con:
