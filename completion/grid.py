@@ -17,6 +17,7 @@ Only numpy (and libigl, imported where used) lives here: torch never.
 
 from __future__ import annotations
 
+import zlib
 from dataclasses import dataclass
 
 import numpy as np
@@ -42,6 +43,34 @@ def voxel_keys(points: np.ndarray, pitch: float) -> np.ndarray:
     """(n, 3) int64 indices of the axis-aligned voxels of side ``pitch`` (one corner at the
     origin) that hold ``points`` (n, 3); a voxel's centre is ``(key + 0.5) * pitch``."""
     return np.floor(np.asarray(points, dtype=np.float64).reshape(-1, 3) / pitch).astype(np.int64)
+
+
+def pack_voxel_keys(keys: np.ndarray) -> np.ndarray:
+    """A set of voxel keys (n, 3) as compact bytes (uint8): the occupancy of their bounding box
+    as bits, deflated (zlib), after a header of the box's corner and shape (6 int32). Keys sampled
+    from surfaces take well under a byte each; :func:`unpack_voxel_keys` gives them back sorted."""
+    keys = np.asarray(keys, dtype=np.int64).reshape(-1, 3)
+    if not len(keys):
+        return np.zeros(0, dtype=np.uint8)
+    low = keys.min(axis=0)
+    shape = keys.max(axis=0) - low + 1
+    bits = np.zeros(int(np.prod(shape)), dtype=bool)
+    bits[np.ravel_multi_index((keys - low).T, shape)] = True
+    header = np.concatenate([low, shape]).astype("<i4").tobytes()
+    return np.frombuffer(header + zlib.compress(np.packbits(bits).tobytes(), 6), dtype=np.uint8)
+
+
+def unpack_voxel_keys(packed: np.ndarray) -> np.ndarray:
+    """The keys (n, 3) int32 that :func:`pack_voxel_keys` packed, in lexicographic order."""
+    data = np.asarray(packed, dtype=np.uint8).tobytes()
+    if not data:
+        return np.zeros((0, 3), dtype=np.int32)
+    header = np.frombuffer(data[:24], dtype="<i4").astype(np.int64)
+    low, shape = header[:3], header[3:]
+    bits = np.unpackbits(np.frombuffer(zlib.decompress(data[24:]), dtype=np.uint8),
+                         count=int(np.prod(shape)))
+    index = np.flatnonzero(bits)
+    return (np.stack(np.unravel_index(index, shape), axis=1) + low).astype(np.int32)
 
 
 @dataclass(frozen=True)

@@ -92,6 +92,7 @@ async def _lifespan(app: FastAPI) -> AsyncIterator[None]:
             queue=settings.planning_queue,
             cache=settings.plan_cache,
             per_client=settings.client_plans,
+            trials_per_client=settings.trials_per_client(),
         ),
         locks=SessionLocks(),
         parser=BodyParser(

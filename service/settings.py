@@ -180,6 +180,11 @@ class Settings(BaseSettings):
         "more get 503 while other clients' plans are still admitted. Free workers go to the "
         "waiting clients in turn"
     )
+    client_trials: int | None = Field(
+        None, ge=1, description="planner workers one client's verification (lift trials) may "
+        "hold at once; unset: all but one with several tokens (another client's plan always "
+        "finds a worker soon), all of them with one token or none"
+    )
     max_answers: int = Field(
         MAX_ANSWERS, ge=1, description="idempotent answers (POST /views with an Idempotency-Key) "
         "kept per client, the oldest dropped beyond it; each lives as long as a session"
@@ -208,6 +213,13 @@ class Settings(BaseSettings):
         if value is not None and not all(t.strip() for t in value.get_secret_value().split(",")):
             raise ValueError("GRASP_TOKEN: an empty token (tokens are separated by commas)")
         return value
+
+    def trials_per_client(self) -> int:
+        """``client_trials``, or its default for these tokens and workers."""
+        if self.client_trials is not None:
+            return self.client_trials
+        workers = self.planning_workers
+        return max(1, workers - 1) if len(self.tokens()) > 1 else workers
 
     def tokens(self) -> tuple[str, ...]:
         """The accepted bearer tokens (none: no token is needed)."""

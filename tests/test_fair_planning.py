@@ -81,3 +81,36 @@ def test_one_client_is_refused_beyond_its_share_while_others_are_admitted(monkey
         assert not cached and planner.pending == 0
 
     asyncio.run(scenario())
+
+
+def test_one_clients_trials_leave_a_worker_for_another_clients_plan(monkeypatch):
+    """Two workers, trials_per_client=1: client a's six lift trials run one at a time, and b's
+    plan, asked while they run, starts at once on the other worker."""
+    running, most, started = [], [0], {}
+
+    def trial(name):
+        running.append(name)
+        most[0] = max(most[0], sum(r.startswith("a") for r in running))
+        time.sleep(0.05)
+        running.remove(name)
+
+    def slow_plan(request):
+        started["b"] = time.perf_counter()
+        return [], 0.0
+
+    monkeypatch.setattr(planning, "plan_grasps", slow_plan)
+
+    async def scenario():
+        planner = planning.Planner(2, processes=False, queue=8, cache=0, trials_per_client=1)
+        trials = [asyncio.create_task(planner._trial(lambda i=i: trial(f"a{i}"), "a"))
+                  for i in range(6)]
+        await asyncio.sleep(0.02)
+        asked = time.perf_counter()
+        await planner.plan(planning.PlanRequest(np.zeros((3, 3)), np.array([[0, 1, 2]]),
+                                                n_candidates=4, seed=0, top_k=1), client="b")
+        await asyncio.gather(*trials)
+        assert not planner._trial_gates
+        return started["b"] - asked
+
+    waited = asyncio.run(scenario())
+    assert most[0] == 1 and waited < 0.04, (most, waited)

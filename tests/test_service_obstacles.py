@@ -121,3 +121,36 @@ def test_a_session_keeps_its_obstacles_through_a_sigkill(tmp_path, tiny_model, c
         assert r.status_code == 200 and voxels(second, sid) > before
     finally:
         second.stop()
+
+
+def test_obstacles_at_the_cap_are_stored_compactly_and_exactly(clutter):
+    """A session at the obstacle cap (the neighbours' whole surfaces, far more than a camera
+    sees) stores them in under 200 kB, and reads back the same voxels; a state stored before
+    they were packed still reads."""
+    import io
+
+    from service_helpers import TINY
+    from trimesh.sample import sample_surface
+
+    from completion.model import build_model
+    from completion.stream import MAX_OBSTACLE_VOXELS, CompletionStream
+
+    stream = CompletionStream(build_model(TINY))
+    bare = len(stream.to_bytes())
+    rng = np.random.default_rng(0)
+    for mesh in clutter.neighbours:  # copies on a grid across the table: beyond the cap
+        for dx in np.linspace(-0.4, 0.4, 6):
+            for dy in np.linspace(-0.4, 0.4, 6):
+                stream.add_obstacles(sample_surface(mesh, 20_000, seed=rng)[0] + [dx, dy, 0.0])
+    assert len(stream.obstacle_keys) == MAX_OBSTACLE_VOXELS
+    data = stream.to_bytes()
+    assert len(data) - bare < 200_000, len(data) - bare
+    again = CompletionStream.from_bytes(build_model(TINY), data)
+    np.testing.assert_array_equal(again.obstacle_keys, stream.obstacle_keys)
+    with np.load(io.BytesIO(data)) as z:  # the form before packing: keys as int32 rows
+        arrays = {k: z[k] for k in z.files if k != "obstacles_packed"}
+    old = io.BytesIO()
+    np.savez(old, **arrays, obstacle_keys=stream.obstacle_keys)
+    np.testing.assert_array_equal(
+        CompletionStream.from_bytes(build_model(TINY), old.getvalue()).obstacle_keys,
+        stream.obstacle_keys)

@@ -9,7 +9,9 @@ so the worker processes stay small.
 Requests beyond the workers wait in a bounded queue (``GRASP_PLANNING_QUEUE``; more get 503 at
 once rather than piling up; one client at most ``GRASP_CLIENT_PLANS`` of them, so that it cannot
 fill the queue for the others). A free worker goes to the waiting clients in turn
-(:class:`FairSlots`: round-robin over clients, first come first served within one). A request
+(:class:`FairSlots`: round-robin over clients, first come first served within one), and one
+client's verification runs on at most ``GRASP_CLIENT_TRIALS`` workers at once (with several
+tokens, all but one), so that another client's plan finds a worker within a plan's time. A request
 whose client has gone while it waited is dropped before it reaches a worker, and a plan is kept
 (``GRASP_PLAN_CACHE`` plans, least recently used out, each client's its own) so that asking
 again about an unchanged mesh with the same options costs nothing: the inspector page,
@@ -195,12 +197,16 @@ class Planner:
 
     def __init__(
         self, workers: int, *, processes: bool, queue: int, cache: int,
-        per_client: int | None = None,
+        per_client: int | None = None, trials_per_client: int | None = None,
     ) -> None:
         self.workers = workers
         self.processes = processes
         self.queue = queue
         self.per_client = workers + queue if per_client is None else per_client
+        #: verification work (lift trials, convex pieces) of one client running at once: below
+        #: ``workers``, a worker is always left for another client's plan
+        self.trials_per_client = workers if trials_per_client is None else trials_per_client
+        self._trial_gates: dict[str, tuple[asyncio.Semaphore, int]] = {}
         self._pool: ProcessPoolExecutor | None = None
         self._pending = 0  # plans admitted: running or waiting
         self._pending_of: dict[str, int] = {}  # the same, by client
@@ -282,7 +288,7 @@ class Planner:
                     raise ClientGone("the client disconnected while its plan waited")
                 if r.verify:  # the lift test's convex pieces, in another worker meanwhile
                     pieces = asyncio.ensure_future(
-                        self._slot(partial(decompose, r.vertices, r.faces), client))
+                        self._trial(partial(decompose, r.vertices, r.faces), client))
                 result = await self._call(partial(plan_grasps, r))
             if r.verify:
                 start = time.perf_counter()
@@ -313,7 +319,7 @@ class Planner:
         loop = asyncio.get_running_loop()
 
         def run(jobs):  # called from a worker thread: the trials of one grasp, at once
-            calls = [self._slot(partial(lift_trial, vertices, faces, g, plane, t), client)
+            calls = [self._trial(partial(lift_trial, vertices, faces, g, plane, t), client)
                      for _, g, plane, t in jobs]
             future = asyncio.run_coroutine_threadsafe(_gather(calls), loop)
             return future.result()
@@ -321,10 +327,21 @@ class Planner:
         return await anyio.to_thread.run_sync(
             lambda: verified(ranked, n, mesh=None, support_plane=support_plane, seed=seed, run=run))
 
-    async def _slot(self, call, client: str):
-        """``call`` in a worker (process or thread) once ``client``'s turn gives it a slot."""
-        async with self._slots.take(client):
-            return await self._call(call)
+    async def _trial(self, call, client: str):
+        """Verification work in a worker once ``client`` has fewer than ``trials_per_client``
+        running and its turn gives it a slot."""
+        gate, users = self._trial_gates.get(client, (None, 0))
+        gate = gate or asyncio.Semaphore(self.trials_per_client)
+        self._trial_gates[client] = (gate, users + 1)
+        try:
+            async with gate, self._slots.take(client):
+                return await self._call(call)
+        finally:
+            gate, users = self._trial_gates[client]
+            if users == 1:
+                del self._trial_gates[client]
+            else:
+                self._trial_gates[client] = (gate, users - 1)
 
     async def _call(self, call):
         """``call`` in a worker process, or a thread (``processes=False``)."""
