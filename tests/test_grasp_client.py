@@ -101,7 +101,7 @@ def test_millimetres_and_metres_give_the_same_stored_view(server, scene):
             with client.session() as session:
                 session.add_view(depth, K, mask=scene.mask[0] >= 0)
                 observed = httpx.get(f"{server.url}/sessions/{session.id}/observed",
-                                     headers=headers).json()
+                                     params={"format": "json"}, headers=headers).json()
                 grid = httpx.get(f"{server.url}/sessions/{session.id}/occupancy",
                                  headers=headers).json()
                 stored.append((np.asarray(observed["points"]), grid))

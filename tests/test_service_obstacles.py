@@ -4,6 +4,8 @@ the world frame across views, outlive a restart, and reach the planner and the i
 
 from __future__ import annotations
 
+import base64
+
 import numpy as np
 import pytest
 from fastapi.testclient import TestClient
@@ -43,9 +45,12 @@ def view(scene, t: int, *, label: bool = False, **extra) -> dict:
 
 def _obstacles_world(client, sid: str) -> tuple[np.ndarray, dict]:
     plan = client.get("/grasp", params={"session_id": sid, "n_candidates": 4}).json()
-    seen = client.get(f"/sessions/{sid}/observed").json()
+    seen = client.get(f"/sessions/{sid}/observed").json()  # float32 rows, base64
+    local = np.frombuffer(base64.b64decode(seen["obstacles"]), "<f4").reshape(-1, 3)
+    listed = client.get(f"/sessions/{sid}/observed", params={"format": "json"}).json()
+    assert seen["n_obstacles"] == len(listed["obstacles"]) == len(local)
+    np.testing.assert_allclose(local, np.asarray(listed["obstacles"]).reshape(-1, 3), atol=1e-6)
     camera = np.asarray(plan["camera_pose"])
-    local = np.asarray(seen["obstacles"]).reshape(-1, 3)
     return local @ camera[:3, :3].T + camera[:3, 3], plan
 
 

@@ -175,14 +175,25 @@ class GraspsOut(BaseModel):
     )
 
 
+#: How ``GET /sessions/{id}/observed`` writes its points: ``f32`` base64 of little-endian float32
+#: rows (x, y, z), a quarter of the JSON's size and no number formatting; ``json`` lists.
+ObservedFormat = Literal["f32", "json"]
+
+
 class ObservedOut(BaseModel):
     session_id: str
     views: int
-    points: list[list[float]] = Field(
-        description="centres of the latest view's observed voxels, its camera frame, metres"
+    format: ObservedFormat = Field(description="how points and obstacles are written")
+    n_points: int = Field(description="observed voxels of the latest view")
+    n_obstacles: int = Field(description="obstacle voxels the session keeps")
+    points: str | list[list[float]] = Field(
+        description="centres of the latest view's observed voxels, its camera frame, metres: "
+        "base64 of float32 little-endian (n_points, 3) row-major (format=f32), or [x, y, z] "
+        "lists (format=json)"
     )
-    obstacles: list[list[float]] = Field(
-        [], description="centres of the session's obstacle voxels, the same camera frame"
+    obstacles: str | list[list[float]] = Field(
+        description="centres of the session's obstacle voxels, the same camera frame and "
+        "format"
     )
 
 

@@ -32,6 +32,13 @@ async function api(path) {
   return response;
 }
 
+// /observed's points: base64 of float32 rows (format f32, the default) or [x, y, z] lists (json)
+function xyz(field, format) {
+  if (format !== 'f32') return new Float32Array(field.flat());
+  const bytes = Uint8Array.from(atob(field), (c) => c.charCodeAt(0));
+  return new Float32Array(bytes.buffer);
+}
+
 function matrix(rows) {
   const m = new THREE.Matrix4();
   m.set(...rows.flat());
@@ -172,12 +179,17 @@ async function main() {
   root.add(completion);
 
   const points = new THREE.BufferGeometry();
-  points.setAttribute('position', new THREE.Float32BufferAttribute(observed.points.flat(), 3));
+  const seen = xyz(observed.points, observed.format);
+  points.setAttribute('position', new THREE.BufferAttribute(seen, 3));
   root.add(new THREE.Points(points, new THREE.PointsMaterial({ color: 0x1f5fd6, size: 0.004 })));
-  if (observed.obstacles && observed.obstacles.length) { // the neighbours the grasps avoid
+  let neighbours = null; // the obstacles the grasps avoid, in a colour no axis uses
+  if (observed.n_obstacles) {
     const others = new THREE.BufferGeometry();
-    others.setAttribute('position', new THREE.Float32BufferAttribute(observed.obstacles.flat(), 3));
-    root.add(new THREE.Points(others, new THREE.PointsMaterial({ color: 0xc0392b, size: 0.005 })));
+    const voxels = xyz(observed.obstacles, observed.format);
+    others.setAttribute('position', new THREE.BufferAttribute(voxels, 3));
+    neighbours = new THREE.Points(others,
+      new THREE.PointsMaterial({ color: 0x8e44ad, size: 0.005 }));
+    root.add(neighbours);
   }
 
   const box = new THREE.Box3().setFromObject(completion);
@@ -204,13 +216,14 @@ async function main() {
   camera.up.copy(up); // before the controls, which orbit about it
   const controls = new OrbitControls(camera, renderer.domElement);
 
-  // frame the completion and where the selected grasp touches it (its contacts and the palm's
-  // centre, not the whole hand), looking between fingers 1 and 2 (from the palm's +y, where they
+  // frame the completion, the neighbours and where the selected grasp touches it (its contacts
+  // and the palm's centre, not the whole hand), looking between fingers 1 and 2 (from the palm's +y, where they
   // stand 50 mm apart; finger 3 closes from −y), a little from above: square to the approach, so
   // that the hand stands beside the object and the face the fingers close on faces the viewer
   function frame(index) {
     scene.updateMatrixWorld(true);
     const box = new THREE.Box3().setFromObject(completion);
+    if (neighbours) box.union(new THREE.Box3().setFromObject(neighbours));
     const grasp = plan.grasps[index];
     if (grasp) {
       const palm = grasp.end_palm_pose || grasp.palm_pose;
@@ -269,9 +282,9 @@ async function main() {
     return;
   }
   statusEl.dataset.state = 'ready';
-  statusEl.textContent = `${plan.grasps.length} grasp(s), ${observed.points.length} observed ` +
+  statusEl.textContent = `${plan.grasps.length} grasp(s), ${observed.n_points} observed ` +
     `points, ${plan.views} view(s)` +
-    (plan.obstacle_voxels ? `, ${plan.obstacle_voxels} obstacle voxels (red)` : '');
+    (plan.obstacle_voxels ? `, ${plan.obstacle_voxels} obstacle voxels (purple)` : '');
 }
 
 main().catch(fail);
