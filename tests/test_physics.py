@@ -187,14 +187,18 @@ def test_the_decomposition_cache_keeps_the_most_recently_used(tmp_path, monkeypa
 
     from grasp.physics import body
 
-    monkeypatch.setattr(body, "CACHE_ENTRIES", 2)
+    monkeypatch.setenv(body.CACHE_ENTRIES_ENV, "2")  # the settings: its bound and its folder
+    monkeypatch.setenv(body.CACHE_DIR_ENV, str(tmp_path))
     boxes = [trimesh.creation.box(extents=[0.05 + 0.01 * k, 0.04, 0.03]) for k in range(3)]
-    paths = [convex_decomposition(boxes[k], cache_dir=tmp_path)[0] for k in range(2)]
+    paths = [convex_decomposition(boxes[k])[0] for k in range(2)]
     for age, path in enumerate(paths):  # the first made 20 s ago, the second 10 s ago
         os.utime(path, (path.stat().st_atime, path.stat().st_mtime - 20 + 10 * age))
-    assert convex_decomposition(boxes[0], cache_dir=tmp_path)[0] == paths[0]  # a hit: renewed
-    third, _ = convex_decomposition(boxes[2], cache_dir=tmp_path)  # a miss: one entry too many
+    assert convex_decomposition(boxes[0])[0] == paths[0]  # a hit: renewed
+    third, _ = convex_decomposition(boxes[2])  # a miss: one entry too many
     assert sorted(tmp_path.glob("*.obj")) == sorted([paths[0], third])  # the unused one went
+    monkeypatch.setenv(body.CACHE_ENTRIES_ENV, "0")
+    with pytest.raises(ValueError, match="GRASP_CONVEX_CACHE_ENTRIES must be a whole number"):
+        convex_decomposition(trimesh.creation.box(extents=[0.09, 0.04, 0.03]))
 
 
 def test_bad_inputs_raise_value_errors(box, good_grasp):

@@ -19,17 +19,34 @@ from grasp.physics.settings import DENSITY_KG_M3, VHACD_OPTIONS
 
 log = logging.getLogger(__name__)
 _CACHE_VERSION = "1"
-#: Most meshes the convex-decomposition cache keeps (about 23 KB each: some 23 MB); past it the
-#: least recently used go first (a hit renews an entry's time), so a long-running service that
-#: sees a new completion at every view does not fill the disk.
+#: Most meshes the convex-decomposition cache keeps (about 23 KB each: some 23 MB) unless
+#: ``GRASP_CONVEX_CACHE_ENTRIES`` says otherwise; past it the least recently used go first (a hit
+#: renews an entry's time), so a long-running service that sees a new completion at every view does
+#: not fill the disk.
 CACHE_ENTRIES = 1000
+#: The environment's settings of the cache, read at each use (the service's planner processes
+#: inherit them): its folder and its bound.
+CACHE_DIR_ENV, CACHE_ENTRIES_ENV = "GRASP_CONVEX_CACHE_DIR", "GRASP_CONVEX_CACHE_ENTRIES"
 
 
 def _cache_root(cache_dir: str | Path | None) -> Path:
     if cache_dir is not None:
         return Path(cache_dir)
+    if os.environ.get(CACHE_DIR_ENV):
+        return Path(os.environ[CACHE_DIR_ENV])
     base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
     return Path(base) / "mvp-grasp" / "convex"
+
+
+def cache_entries() -> int:
+    """The cache's bound: ``GRASP_CONVEX_CACHE_ENTRIES``, else :data:`CACHE_ENTRIES`."""
+    given = os.environ.get(CACHE_ENTRIES_ENV)
+    if not given:
+        return CACHE_ENTRIES
+    if not given.isdigit() or int(given) < 1:
+        raise ValueError(f"{CACHE_ENTRIES_ENV} must be a whole number of meshes, at least 1; "
+                         f"got {given!r}")
+    return int(given)
 
 
 def _mesh_key(mesh: trimesh.Trimesh) -> str:
@@ -73,9 +90,10 @@ def convex_decomposition(
 
     A convex mesh is its own hull; anything else goes through pybullet's V-HACD
     (:data:`VHACD_OPTIONS`). The OBJ is cached under ``cache_dir`` (default
-    ``$XDG_CACHE_HOME/mvp-grasp/convex`` or ``~/.cache/…``, falling back to the temp folder when
-    that is not writable) by a hash of the vertices, faces and options, so the same mesh in the same
-    pose is decomposed once; the cache keeps the :data:`CACHE_ENTRIES` most recently used.
+    ``$GRASP_CONVEX_CACHE_DIR``, else ``$XDG_CACHE_HOME/mvp-grasp/convex`` or ``~/.cache/…``,
+    falling back to the temp folder when that is not writable) by a hash of the vertices, faces
+    and options, so the same mesh in the same pose is decomposed once; the cache keeps the
+    :func:`cache_entries` most recently used.
 
     Returns
     -------
@@ -86,7 +104,7 @@ def convex_decomposition(
     try:
         root.mkdir(parents=True, exist_ok=True)
     except OSError:
-        if cache_dir is not None:
+        if cache_dir is not None or os.environ.get(CACHE_DIR_ENV):
             raise
         root = Path(tempfile.gettempdir()) / "mvp-grasp-convex"
         root.mkdir(parents=True, exist_ok=True)
@@ -112,7 +130,7 @@ def convex_decomposition(
                 log.warning("V-HACD returned no pieces; using the convex hull")
                 pieces = [np.asarray(mesh.vertices)]
             write_pieces(path, pieces)
-        _evict(root, CACHE_ENTRIES)
+        _evict(root, cache_entries())
     return path, read_pieces(path)
 
 
