@@ -149,30 +149,24 @@ def make_bodies(
 
 
 def clutter_views(index: int, seed: int, views: int) -> list[dict]:
-    """The clutter table's scene ``index`` (:func:`grasp.evaluate.clutter_scenes.clutter_scene`: a
-    target among 2-5 neighbours on a table) as view bodies: each a depth PNG with a label image
-    (the target 1, the neighbours 2, the rest 0), its camera pose, the table with the first.
-    The scene has 4 views; more are its pan again."""
-    from completion.depth_camera import Renderer
+    """The clutter table's scene ``index`` (:func:`grasp.evaluate.clutter_scenes.
+    make_clutter_scene`: a target among 2-5 neighbours on a table) as view bodies: each a depth
+    PNG with its label image (the target 1, the neighbours 2, the rest 0), its camera pose, the
+    table with the first. The scene has 4 views; more are its pan again."""
     from completion.scenes import TABLE_PLANE
-    from grasp.evaluate.clutter_scenes import clutter_scene
+    from grasp.evaluate.clutter_scenes import make_clutter_scene
     from grasp_client.wire import depth_png16_mm, intrinsics_field
 
-    renderer = Renderer()
-    try:
-        scene = clutter_scene(index, seed, renderer)
-    finally:
-        renderer.close()
+    scene = make_clutter_scene(index, seed)
     k = scene.intrinsics
     bodies = []
     for i in range(views):
         t = i % len(scene.depth)
-        labels = np.where(scene.mask[t], 1, np.where(scene.others[t], 2, 0)).astype(np.uint8)
         bodies.append({"depth": depth_png16_mm(scene.depth[t]),
                        "intrinsics": intrinsics_field({"fx": k.fx, "fy": k.fy, "cx": k.cx,
                                                        "cy": k.cy}),
-                       "mask": _label_png(labels),
-                       "object_label": 1, "camera_pose": scene.cameras[t].tolist()})
+                       "mask": _label_png(scene.labels(t)),
+                       "object_label": scene.TARGET, "camera_pose": scene.cameras[t].tolist()})
     bodies[0]["support_plane"] = TABLE_PLANE.as_array().tolist()
     return bodies
 

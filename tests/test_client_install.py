@@ -78,8 +78,9 @@ def test_the_client_alone_gets_a_typed_grasp_from_a_real_server(venvs, server, v
     assert not SERVER_ONLY & set(installed), installed
     assert installed["numpy"].startswith("1.26" if numpy == "numpy<2" else "2.")
     example = CLIENT / "examples" / "grasp_from_file.py"
-    run = subprocess.run([python, str(example), "--url", server.url], capture_output=True,
-                         text=True, timeout=300, cwd=venvs[version])  # not the checkout
+    run = subprocess.run([python, str(example), "--url", server.url, "--min-hold", "0"],
+                         capture_output=True, text=True, timeout=300,
+                         cwd=venvs[version])  # not the checkout
     assert run.returncode == 0, run.stdout + run.stderr
     assert "pre-grasp pose (palm→world)" in run.stdout and "f3_dist" in run.stdout, run.stdout
     readme = re.findall(r"```python\n(.*?)```", (CLIENT / "README.md").read_text(), re.S)[0]

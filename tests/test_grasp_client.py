@@ -235,3 +235,19 @@ def test_a_robot_sends_a_label_image_and_the_grasps_keep_clear_of_the_other_obje
         with pytest.raises(InvalidRequest, match="obstacle_mask"):
             session.add_view(scene.depth[0], (k.fx, k.fy, k.cx, k.cy), mask=scene.mask[0],
                              obstacle_mask=np.ones((4, 4)))
+
+
+def test_a_kept_session_outlives_the_with_blocks(server):
+    """``keep=True``: the session stays on the service for its inspector page after the
+    ``with`` blocks end, until it expires or is deleted; the others are deleted as before."""
+    points = np.random.default_rng(0).normal(scale=0.02, size=(300, 3)) + [0.0, 0.0, 0.5]
+    with GraspClient(server.url, token="secret") as client:
+        with client.session(keep=True) as kept, client.session() as dropped:
+            kept.add_points(points)
+            dropped.add_points(points)
+            ids = kept.id, dropped.id
+    headers = {"Authorization": "Bearer secret"}
+    assert httpx.get(f"{server.url}/sessions/{ids[0]}", headers=headers).status_code == 200
+    assert httpx.get(f"{server.url}/sessions/{ids[1]}", headers=headers).status_code == 404
+    with GraspClient(server.url, token="secret") as client:
+        client.request("DELETE", f"/sessions/{ids[0]}")

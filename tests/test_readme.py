@@ -88,6 +88,27 @@ def test_snippet_runs(index, request, capsys, tmp_path, monkeypatch):
          {"__name__": "__readme__"})
 
 
+@pytest.mark.parametrize("view", ["tabletop_view.npz", "clutter_view.npz"])
+def test_the_client_example_says_what_it_got(server, view):
+    """``clients/python/examples/grasp_from_file.py`` on each stored view: a grasp it may act on
+    (exit 0), one under the hold probability the docs require (exit 3, warned), or none (exit 1,
+    with the service's reason); the clutter view's label image makes obstacles."""
+    examples = ROOT / "clients" / "python" / "examples"
+    run = subprocess.run([sys.executable, str(examples / "grasp_from_file.py"), "--url", server,
+                          "--view", str(examples / view)], capture_output=True, text=True,
+                         timeout=300)
+    out = run.stdout
+    obstacles = int(re.search(r"(\d+) obstacle voxels kept clear of", out).group(1))
+    assert (obstacles > 100) == (view == "clutter_view.npz"), out
+    if run.returncode == 1:
+        assert re.search(r"no grasp held: \S", out), out
+        return
+    hold = float(re.search(r"hold_probability=([0-9.]+)", out).group(1))
+    assert "pre-grasp pose (palm→world)" in out and "f3_dist" in out, out
+    assert run.returncode == (0 if hold >= 0.9 else 3), run.stdout + run.stderr
+    assert ("warning: hold probability" in run.stderr) == (hold < 0.9), run.stderr
+
+
 def test_ci_runs_the_readmes_test_command():
     readme = (ROOT / "README.md").read_text()
     command = re.findall(r"```bash\n(.*?)```", readme, re.S)[1].strip()  # the quick start's second

@@ -72,6 +72,16 @@ class ClutterScene:
     cameras: np.ndarray  # (VIEWS, 4, 4) camera→world
     intrinsics: G.Intrinsics
 
+    #: The values of :meth:`labels`: what a robot's segmentation gives.
+    TARGET, NEIGHBOUR = 1, 2
+
+    def labels(self, view: int) -> np.ndarray:
+        """View ``view``'s label image (H, W) uint8: :attr:`TARGET` the target's pixels,
+        :attr:`NEIGHBOUR` the neighbours', 0 the table and the rest; send it as ``mask`` with
+        ``object_label=TARGET`` and the service keeps the neighbours as obstacles."""
+        return np.where(self.mask[view], self.TARGET,
+                        np.where(self.others[view], self.NEIGHBOUR, 0)).astype(np.uint8)
+
 
 def _resting(object_id: str, rng: np.random.Generator) -> trimesh.Trimesh:
     from completion.scenes import stable_pose
@@ -185,6 +195,19 @@ def clutter_scene(index: int, seed: int, renderer) -> ClutterScene:
                                          elevation, azimuth, noise)
     return ClutterScene(target_id, target, names, meshes, gaps, depths, labels == 0,
                         (labels >= 1) & (labels <= len(meshes)), cameras, renderer.intrinsics)
+
+
+def make_clutter_scene(index: int, seed: int = 0) -> ClutterScene:
+    """The clutter table's scene ``index``, rendered: a held-out object on a table (z = 0) among
+    2–5 neighbours at 2–10 cm, a depth camera's 4 views around it with their label images
+    (:meth:`ClutterScene.labels`), camera poses and intrinsics. Same index and seed, same scene."""
+    from completion.depth_camera import Renderer
+
+    renderer = Renderer()
+    try:
+        return clutter_scene(index, seed, renderer)
+    finally:
+        renderer.close()
 
 
 def seen_obstacles(scene: ClutterScene, views: int = VIEWS) -> Obstacles:

@@ -12,16 +12,26 @@ from completion.bullet import quiet_fds
 
 #: Failed grasps a table's failures figure shows, at most (:func:`failures_figure`).
 FAILURE_FIGURE_EXAMPLES = 12
+#: Colours of the figure's parts (RGBA): the target is :class:`~grasp.evaluate.picture.GraspWorld`'s
+#: orange, the hand its grey; none of them is another's.
+TARGET_RGBA = (0.85, 0.55, 0.3, 1.0)
+NEIGHBOUR_RGBA = (0.35, 0.55, 0.85, 1.0)
+TABLE_RGBA = (0.62, 0.76, 0.58, 1.0)
+#: Characters of the heading per inch of figure width (9-point type).
+HEADING_CHARS_PER_INCH = 14
 
 
 def failures_figure(raw, out: Path, plt, table: str, row: str, scene, title, heading: str,
                     name: str, key: str = "held") -> Path | None:
     """A figure of ``table``'s ``row`` grasps whose ``key`` is false (at most
-    :data:`FAILURE_FIGURE_EXAMPLES`), each the meshes ``scene(r)`` gives on a patch of the
-    table and the hand where it closed (as planned in a record without that pose), titled
-    ``title(r, record)`` and the reason; ``record`` is the row's outcome in the job's record
-    (``r.record["rows"][row]``)."""
+    :data:`FAILURE_FIGURE_EXAMPLES`), each the meshes ``scene(r)`` gives (the target first, then
+    its neighbours, each coloured apart) on a patch of the table and the hand where it closed (as
+    planned in a record without that pose), titled ``title(r, record)`` and the reason; ``record``
+    is the row's outcome in the job's record (``r.record["rows"][row]``). A legend names the
+    colours; the heading is wrapped to the figure's width."""
     import textwrap
+
+    from matplotlib.patches import Patch
 
     from grasp.evaluate.render import render_grasp
     from grasp.hand.result import GraspResult, HandDofs, HandJoints
@@ -49,11 +59,17 @@ def failures_figure(raw, out: Path, plt, table: str, row: str, scene, title, hea
         hand = GraspResult(False, record["reason"], np.asarray(palm),
                            HandJoints(*record["planned_joints_deg"]),
                            HandDofs(record["planned_joints_deg"][0], 0.0, 0.0, 0.0))
+        others = [(patch, TABLE_RGBA), *((m, NEIGHBOUR_RGBA) for m in meshes[1:])]
         with quiet_fds(1):
-            image = render_grasp(trimesh.util.concatenate([*meshes, patch]), hand, width=260,
-                                 height=260)[0]
+            image = render_grasp(meshes[0], hand, width=260, height=260, others=others)[0]
         ax.imshow(image)
-    fig.suptitle(heading, fontsize=9)
+    width_in = fig.get_size_inches()[0]
+    fig.suptitle(textwrap.fill(heading, int(HEADING_CHARS_PER_INCH * width_in)), fontsize=9)
+    parts = [("target", TARGET_RGBA), ("table", TABLE_RGBA), ("hand", (0.45, 0.45, 0.5, 1.0))]
+    if any(len(scene(r)) > 1 for r in failed):
+        parts.insert(1, ("neighbours", NEIGHBOUR_RGBA))
+    fig.legend(handles=[Patch(color=rgba, label=label) for label, rgba in parts],
+               loc="outside lower center", ncols=len(parts), fontsize=7, frameon=False)
     path = out / name
     fig.savefig(path, dpi=100)
     plt.close(fig)

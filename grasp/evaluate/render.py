@@ -55,8 +55,11 @@ def render_grasp(
     *,
     width: int = 480,
     height: int = 480,
+    others: Sequence[tuple[trimesh.Trimesh, Sequence[float]]] = (),
 ) -> list[np.ndarray]:
-    """Render ``result``'s hand on ``mesh`` from two viewpoints.
+    """Render ``result``'s hand on ``mesh`` (the object, :class:`GraspWorld`'s orange) from two
+    viewpoints; ``others``: more meshes drawn beside it, each (mesh, RGBA), such as the table and
+    the neighbours (pictured only: the hand's pose is the result's).
 
     Returns
     -------
@@ -67,9 +70,16 @@ def render_grasp(
         raise ValueError(f"image size must be at least 16×16, got {width}×{height}")
     images = []
     with GraspWorld(mesh) as world:
+        for other, rgba in others:
+            shape = world.client.createVisualShape(
+                pybullet.GEOM_MESH, vertices=np.asarray(other.vertices, float).tolist(),
+                indices=np.asarray(other.faces, np.int32).ravel().tolist(),
+                normals=np.asarray(other.vertex_normals).tolist(), rgbaColor=list(rgba))
+            world.client.createMultiBody(baseMass=0.0, baseVisualShapeIndex=shape)
         world.set_hand(result.end_palm_pose, result.joints_deg)
         hand = np.array([pose[:3, 3] for pose in world.link_poses().values()])
-        points = np.vstack([mesh.bounds, hand, hand + 0.06 * result.palm_pose[:3, 2]])
+        points = np.vstack([mesh.bounds, *(o.bounds for o, _ in others), hand,
+                            hand + 0.06 * result.palm_pose[:3, 2]])
         for eye, target, up in _views(points, np.asarray(result.palm_pose)):
             view = world.client.computeViewMatrix(eye.tolist(), target.tolist(), up.tolist())
             proj = world.client.computeProjectionMatrixFOV(FOV_DEG, width / height, 0.01, 5.0)

@@ -126,14 +126,16 @@ class GraspClient:
         self._open: list[Session] = []
 
     def session(self, support_plane: Sequence[float] | None = None, *,
-                registered: bool | None = None) -> Session:
+                registered: bool | None = None, keep: bool = False) -> Session:
         """A new session (created on the service by its first view). ``support_plane``: the
         table the object rests on, (nx, ny, nz, d) in the world frame (n·x + d = 0, n up); it
         needs views with ``camera_pose``, is sent with the first view and kept by the session
         (the completion is cut at it, grasps treat it as an obstacle). ``registered``: whether
         the session fuses its posed views in the world frame, the object standing still (None:
-        the service's default, on; False for an object that moves)."""
-        session = Session(self, _plane(support_plane), registered)
+        the service's default, on; False for an object that moves). ``keep``: leave the session
+        on the service when the ``with`` blocks end (to open its ``inspector_url`` afterwards;
+        it expires on its own, or ``delete()`` it)."""
+        session = Session(self, _plane(support_plane), registered, keep)
         self._open.append(session)
         return session
 
@@ -176,8 +178,9 @@ class GraspClient:
         raise AssertionError("unreachable")  # pragma: no cover
 
     def close(self) -> None:
-        """Delete the sessions still open, then close the connection pool."""
-        for session in list(self._open):
+        """Delete the sessions still open (but those made with ``keep=True``), then close the
+        connection pool."""
+        for session in [s for s in self._open if not s.keep]:
             try:
                 session.delete()
             except ServiceError:
@@ -193,11 +196,12 @@ class GraspClient:
 
 class Session:
     """One object's views and grasps; use :meth:`GraspClient.session`. As a context manager it
-    deletes itself on exit."""
+    deletes itself on exit, unless made with ``keep=True``."""
 
     def __init__(self, client: GraspClient, support_plane: list[float] | None,
-                 registered: bool | None = None) -> None:
+                 registered: bool | None = None, keep: bool = False) -> None:
         self.client = client
+        self.keep = keep  # left on the service when the with blocks end
         self.support_plane = support_plane
         self.registered = registered  # sent with the first view: the session keeps it
         self.id: str | None = None
@@ -338,7 +342,8 @@ class Session:
         return self
 
     def __exit__(self, *exc: object) -> None:
-        self.delete()
+        if not self.keep:
+            self.delete()
 
 
 def _depth_field(depth: np.ndarray, encoding: str | None) -> dict:
