@@ -10,11 +10,15 @@ from pydantic import Field, SecretStr, field_validator, model_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 from grasp.defaults import AUTOGRASP_BUDGET
-from service.store.base import MAX_ANSWERS
 
 if TYPE_CHECKING:
     from service.intake.frames import FrameChecks
     from service.intake.inputs import DecodeLimits
+
+
+#: Idempotent answers kept per client (``GRASP_MAX_ANSWERS``): beyond it the oldest go, so a client
+#: that sends a new key with every view cannot fill the store.
+MAX_ANSWERS = 10_000
 
 
 class Settings(BaseSettings):

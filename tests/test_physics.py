@@ -201,6 +201,17 @@ def test_the_decomposition_cache_keeps_the_most_recently_used(tmp_path, monkeypa
         convex_decomposition(trimesh.creation.box(extents=[0.09, 0.04, 0.03]))
 
 
+def test_the_decomposition_cache_stays_under_its_bound_after_1000_meshes(tmp_path, monkeypatch):
+    """A long-running service sees a new completion at every view: after 1,000 distinct meshes
+    the cache holds its bound's worth, the most recent (boxes: convex, so no V-HACD runs)."""
+    from grasp.physics import body
+
+    monkeypatch.setenv(body.CACHE_ENTRIES_ENV, "50")
+    last = [convex_decomposition(trimesh.creation.box(extents=[0.05 + 1e-5 * k, 0.04, 0.03]),
+                                 cache_dir=tmp_path)[0] for k in range(1000)][-1]
+    assert len(list(tmp_path.glob("*.obj"))) == 50 and last.is_file()
+
+
 def test_bad_inputs_raise_value_errors(box, good_grasp):
     with pytest.raises(ValueError, match="lift"):
         lift_test(box, good_grasp, lift=-0.1)

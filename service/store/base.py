@@ -20,6 +20,8 @@ from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
 
+from service.settings import MAX_ANSWERS
+
 
 class SessionNotFound(LookupError):
     """No such session (never made, deleted, or expired)."""
@@ -41,9 +43,6 @@ LEASE_S = 5.0
 WAIT_LEASES = 2.0
 #: Seconds between two tries of a waiting view.
 POLL_S = 0.05
-#: Idempotent answers kept per client (the default of ``GRASP_MAX_ANSWERS``): beyond it the
-#: oldest go, so a client that sends a new key with every view cannot fill the store.
-MAX_ANSWERS = 10_000
 
 
 class NoLease:
