@@ -40,7 +40,7 @@ from grasp.hand.collision import CollisionScene, check_mesh
 from grasp.hand.result import GraspResult
 from grasp.hand.table import hand_primitives
 from grasp.physics.verify import DEFAULT_VERIFY, VerifySettings
-from grasp.ranking.rank import palm_touches
+from grasp.ranking.rank import HOLD_THRESHOLD, palm_touches
 from grasp.ranking.select import select
 from grasp.search.candidates import DEFAULT_SPREADS_DEG, STANDOFF_M
 from grasp.search.loop import search
@@ -91,6 +91,11 @@ class PlanOptions:
         would is refused with the reason, the screen's next candidate autograsped in its place
         (the budget counts the grasps the obstacles allow). None or empty: exactly the plan
         without.
+    min_hold : float
+        On a table, a force-closure grasp the lift model gives a lower chance to hold is a
+        failure that says so (default :data:`grasp.ranking.rank.HOLD_THRESHOLD`, 0.5); lower it
+        (``min_hold=0.3``) to get such grasps back with their ``hold_probability`` and decide
+        yourself, or lift-test them first (``verify``).
     """
 
     n_candidates: int = 64
@@ -103,8 +108,11 @@ class PlanOptions:
     verify: int = 0
     verify_settings: VerifySettings = DEFAULT_VERIFY
     obstacles: Obstacles | None = None
+    min_hold: float = HOLD_THRESHOLD
 
     def __post_init__(self) -> None:
+        if not 0.0 <= self.min_hold <= 1.0:
+            raise ValueError(f"min_hold must be a probability in [0, 1], got {self.min_hold}")
         if self.top_k is not None and self.top_k < 1:
             raise ValueError(f"top_k must be >= 1 or None, got {self.top_k}")
         if self.budget is not None and self.budget < 1:
@@ -150,7 +158,7 @@ def plan(
     searched = search(scene, n_candidates=o.n_candidates, seed=o.seed, spreads_deg=o.spreads_deg,
                       travel=travel, budget=o.budget, obstacles=o.obstacles, lap=lap)
     best = select(searched.results, scene, top_k=o.top_k, verify=o.verify, seed=o.seed,
-                  verify_settings=o.verify_settings, lap=lap)
+                  verify_settings=o.verify_settings, lap=lap, min_hold=o.min_hold)
     if best and not best[0].success:
         why = [w for w in searched.failure_reasons(scene) if w not in best[0].reason]
         if why:

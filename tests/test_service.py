@@ -451,3 +451,20 @@ def test_planner_queue_is_bounded_and_gone_clients_are_dropped(monkeypatch):
 
     asyncio.run(scenario())
     assert [c.n_candidates for c in calls] == [4, 6]
+
+
+def test_min_hold_reaches_the_planner_and_is_checked(client, scene, monkeypatch):
+    """``GET /grasp?min_hold=``: outside [0, 1] a 422 on the field; inside, the planner gets it
+    (a plan of its own: not another min_hold's cached one)."""
+    from service.engine import planning
+
+    asked = []
+    real = planning.plan_grasps
+    monkeypatch.setattr(planning, "plan_grasps", lambda r: asked.append(r.min_hold) or real(r))
+    sid = new_session(client, scene_views(scene)[0])
+    r = client.get("/grasp", params={"session_id": sid, "min_hold": 1.5})
+    assert r.status_code == 422 and r.json()["detail"][0]["loc"] == ["query", "min_hold"]
+    for value in (0.5, 0.3):
+        r = client.get("/grasp", params={"session_id": sid, "n_candidates": 8, "min_hold": value})
+        assert r.status_code == 200 and r.json()["cached"] is False, r.text
+    assert asked == [0.5, 0.3]

@@ -265,3 +265,22 @@ def test_a_scene_built_with_a_table_plans_on_it():
     assert [g.joints_deg for g in built] == [g.joints_deg for g in given]
     assert all(np.array_equal(a.palm_pose, b.palm_pose) for a, b in zip(built, given,
                                                                          strict=True))
+
+
+def test_a_grasp_predicted_to_drop_comes_back_when_the_caller_asks():
+    """A small flat object of the benchmark (urdf/988, 6 × 8 × 2 cm): its best force-closure
+    grasp has a hold probability of about 0.43, refused by default (the reason says so);
+    ``min_hold=0.3`` returns the same grasp with its probability, the rest unchanged."""
+    from grasp.evaluate.benchmark_scenes import TABLE_PLANE, benchmark_objects, resting_object
+
+    index = benchmark_objects(100, 0).index("urdf/988")
+    mesh = resting_object("urdf/988", index, 0)[0]
+    refused = plan(mesh, n_candidates=64, seed=0, top_k=1, support_plane=TABLE_PLANE)[0]
+    asked = plan(mesh, n_candidates=64, seed=0, top_k=1, support_plane=TABLE_PLANE,
+                 min_hold=0.3)[0]
+    assert not refused.success and "predicted to drop when lifted" in refused.reason
+    assert asked.success and 0.3 <= asked.hold_probability < 0.5
+    assert asked.hold_probability == refused.hold_probability
+    np.testing.assert_array_equal(asked.palm_pose, refused.palm_pose)
+    with pytest.raises(ValueError, match="min_hold must be a probability"):
+        plan(mesh, top_k=1, support_plane=TABLE_PLANE, min_hold=1.5)

@@ -17,6 +17,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
+from grasp import defaults
 from grasp.hand.autograsp import with_quality
 from grasp.hand.collision import CollisionScene
 from grasp.hand.result import GraspResult
@@ -25,10 +26,8 @@ from grasp.ranking.lift_model import DENSITY_KG_M3, estimated_mass, features, ho
 #: Two grasps are the same grasp when their palm poses are closer than both of these.
 DISTINCT_M = 0.01
 DISTINCT_DEG = 10.0
-#: On a table, a force-closure grasp the lift model gives less than this chance to hold is a
-#: failure that says so (:mod:`grasp.ranking.lift_model`; on the benchmark's true meshes every top
-#: grasp below it dropped).
-HOLD_THRESHOLD = 0.5
+#: On a table, the hold probability under which a force-closure grasp is refused by default.
+HOLD_THRESHOLD = defaults.HOLD_THRESHOLD
 
 
 def distinct(grasps: Sequence[GraspResult], k: int | None = None) -> list[GraspResult]:
@@ -72,12 +71,13 @@ def rank_key(result: GraspResult) -> tuple[bool, float, bool, float, float]:
             result.force_epsilon, result.epsilon)
 
 
-def best_distinct(results: Sequence[GraspResult], scene: CollisionScene, top_k: int):
+def best_distinct(results: Sequence[GraspResult], scene: CollisionScene, top_k: int,
+                  min_hold: float = HOLD_THRESHOLD):
     """The first ``top_k`` distinct grasps of the ranking: rank only as many as needed, widened
     while duplicates among them leave fewer than ``top_k`` (the top one is always distinct)."""
     width, memo = top_k, {}  # each grasp is scored once however often the list widens
     while True:
-        best = distinct(rank(results, scene, top_k=width, memo=memo), top_k)
+        best = distinct(rank(results, scene, top_k=width, memo=memo, min_hold=min_hold), top_k)
         if len(best) >= top_k or width >= len(results):
             return best
         width = min(2 * width, len(results))
@@ -89,8 +89,10 @@ def rank(
     *,
     top_k: int | None = None,
     memo: dict[int, GraspResult] | None = None,
+    min_hold: float = HOLD_THRESHOLD,
 ) -> list[GraspResult]:
-    """Score (epsilon, volume) and sort grasps on ``scene``'s object, best first (:func:`rank_key`).
+    """Score (epsilon, volume) and sort grasps on ``scene``'s object, best first (:func:`rank_key`);
+    on a table a force-closure grasp under ``min_hold`` hold probability is a failure.
 
     What the ranking optimises: a grasp that holds when the object is lifted and carried.
     Force closure comes first (without it some disturbance pulls the object out whatever the
@@ -129,7 +131,7 @@ def rank(
         else:
             scored[i] = r if not math.isnan(r.epsilon) else with_quality(r, scene)
             if scene.support_plane is not None and scored[i].success:
-                scored[i] = _with_hold_probability(scored[i], scene)
+                scored[i] = _with_hold_probability(scored[i], scene, min_hold)
             if memo is not None:
                 memo[id(r)] = scored[i]
         if scored[i].success:
@@ -138,12 +140,13 @@ def rank(
     return [scored[i] for i in ranked][: len(results) if top_k is None else top_k]
 
 
-def _with_hold_probability(result: GraspResult, scene: CollisionScene) -> GraspResult:
+def _with_hold_probability(result: GraspResult, scene: CollisionScene,
+                           min_hold: float = HOLD_THRESHOLD) -> GraspResult:
     """A scored force-closure grasp on a table with the lift model's probability that it holds;
-    below :data:`HOLD_THRESHOLD` it is a failure that says so."""
+    below ``min_hold`` it is a failure that says so."""
     mass = estimated_mass(scene.mesh)
     p = float(hold_probability(features(result, scene.mesh, scene.support_plane, mass=mass))[0])
-    if p >= HOLD_THRESHOLD or math.isnan(p):
+    if p >= min_hold or math.isnan(p):
         return dataclasses.replace(result, hold_probability=p)
     reason = (f"force closure, but predicted to drop when lifted (hold probability {p:.2f}; "
               f"{mass:.2f} kg estimated at {DENSITY_KG_M3:g} kg/m³)")

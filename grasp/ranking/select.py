@@ -10,24 +10,26 @@ import trimesh
 from grasp.hand.collision import CollisionScene
 from grasp.hand.result import GraspResult
 from grasp.physics.verify import DEFAULT_VERIFY, Outcome, VerifySettings, verify
-from grasp.ranking.rank import best_distinct, distinct, rank
+from grasp.ranking.rank import HOLD_THRESHOLD, best_distinct, distinct, rank
 from grasp_client.wire import SupportPlane
 
 
 def select(
     results: Sequence[GraspResult], scene: CollisionScene, *, top_k: int | None,
     verify: int = 0, seed: int = 0, verify_settings: VerifySettings = DEFAULT_VERIFY,
-    lap: Callable[..., None] = lambda stage, **counts: None,
+    lap: Callable[..., None] = lambda stage, **counts: None, min_hold: float = HOLD_THRESHOLD,
 ) -> list[GraspResult]:
     """The best ``top_k`` distinct grasps of ``results`` on ``scene`` (None: every result,
-    ranked, near-duplicates included); with ``verify``, the distinct ranking lift-tested by
-    :func:`verified` before the cut. ``lap(stage, **counts)`` is called after "rank" (and "verify",
-    with ``verified``: how many grasps were lift-tested)."""
+    ranked, near-duplicates included; on a table, those under ``min_hold`` hold probability
+    count as failures); with ``verify``, the distinct ranking lift-tested by :func:`verified`
+    before the cut. ``lap(stage, **counts)`` is called after "rank" (and "verify", with
+    ``verified``: how many grasps were lift-tested)."""
     if not verify:
-        best = rank(results, scene) if top_k is None else best_distinct(results, scene, top_k)
+        best = (rank(results, scene, min_hold=min_hold) if top_k is None
+                else best_distinct(results, scene, top_k, min_hold))
         lap("rank")
         return best
-    ranked = rank(results, scene)
+    ranked = rank(results, scene, min_hold=min_hold)
     lap("rank")
     best = verified(ranked, verify, mesh=scene.mesh, support_plane=scene.support_plane,
                     seed=seed, settings=verify_settings)

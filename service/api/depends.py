@@ -1,6 +1,6 @@
 """What the routes depend on: the running service's parts, the bearer token, a session id in the
 path, and the planning query that ``GET /grasp`` and the inspector's ``scene.glb`` share
-(:class:`PlanQuery`, one declaration of its four parameters).
+(:class:`PlanQuery`, one declaration of its parameters).
 
 No ``from __future__ import annotations`` here: FastAPI reads :class:`PlanQuery`'s field types
 from the dataclass at run time.
@@ -12,6 +12,7 @@ from typing import Annotated
 from fastapi import Depends, HTTPException, Path, Query, Request, status
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 
+from grasp.defaults import HOLD_THRESHOLD
 from grasp_client.wire import SupportPlane
 from service.api.auth import token_index, token_problem
 from service.api.schemas import ErrorOut
@@ -107,6 +108,14 @@ SupportPlaneQuery = Annotated[
 ]
 
 
+MinHoldQuery = Annotated[
+    float,
+    Query(ge=0.0, le=1.0, description="on a table, a force-closure grasp the lift model gives a "
+          "lower chance to hold is a failure that says so; lower it (0.3) to get such grasps "
+          "back, each with its hold_probability, and decide yourself (or verify them)"),
+]
+
+
 @dataclass
 class PlanQuery:
     """``GET /grasp``'s planning parameters (a FastAPI dependency: each field a query
@@ -116,6 +125,7 @@ class PlanQuery:
     n_candidates: NCandidates = None
     support_plane: SupportPlaneQuery = None
     verify: VerifyQuery = None
+    min_hold: MinHoldQuery = HOLD_THRESHOLD
 
 
 @dataclass

@@ -91,7 +91,7 @@ async def plan_session(
         return Planned(out, mesh, snapshot)
     asked = PlanRequest(mesh.vertices, mesh.faces, n_candidates=n, seed=s.plan_seed,
                         top_k=query.top_k, budget=s.plan_budget, support_plane=plane,
-                        obstacles=snapshot.obstacles, verify=tries)
+                        obstacles=snapshot.obstacles, verify=tries, min_hold=query.min_hold)
     results, seconds, cached = await services.planner.plan(asked, client=client,
                                                           gone=request.is_disconnected)
     await services.io(sessions.store.get, session_id)  # deleted while it was planned: 404

@@ -43,7 +43,7 @@ from functools import partial
 import anyio.to_thread
 import numpy as np
 
-from grasp.defaults import AUTOGRASP_BUDGET
+from grasp.defaults import AUTOGRASP_BUDGET, HOLD_THRESHOLD
 from grasp_client.wire import SupportPlane
 from service.intake import workers
 
@@ -61,7 +61,8 @@ class PlanRequest:
     the seed, how many grasps come back, the table (a :class:`grasp_client.wire.SupportPlane` in
     the mesh's frame, or None), the obstacles (voxel centres (k, 3) in the mesh's frame, of the
     session's pitch :data:`completion.grid.OBSTACLE_PITCH_M`, or None) and how many of the best
-    grasps to lift-test before answering (:mod:`grasp.physics.verify`)."""
+    grasps to lift-test before answering (:mod:`grasp.physics.verify`), and the hold probability
+    under which a force-closure grasp on the table is refused (``min_hold``)."""
 
     vertices: np.ndarray
     faces: np.ndarray
@@ -72,6 +73,7 @@ class PlanRequest:
     support_plane: SupportPlane | None = None
     obstacles: np.ndarray | None = None
     verify: int = 0
+    min_hold: float = HOLD_THRESHOLD
 
     @functools.cached_property
     def key(self) -> str:
@@ -85,7 +87,8 @@ class PlanRequest:
         plane = None if self.support_plane is None else (
             *np.round(self.support_plane.normal, 12).tolist(),
             round(self.support_plane.offset, 12))
-        options = (self.n_candidates, self.seed, self.top_k, self.budget, self.verify, plane)
+        options = (self.n_candidates, self.seed, self.top_k, self.budget, self.verify, plane,
+                   self.min_hold)
         digest.update(repr(options).encode())
         return digest.hexdigest()
 
@@ -104,7 +107,7 @@ def plan_grasps(request: PlanRequest) -> tuple[list, float]:
     obstacles = Obstacles(r.obstacles) if r.obstacles is not None and len(r.obstacles) else None
     results = plan(mesh, n_candidates=r.n_candidates, seed=r.seed,
                    top_k=None if r.verify else r.top_k, support_plane=r.support_plane,
-                   budget=r.budget, obstacles=obstacles)
+                   budget=r.budget, obstacles=obstacles, min_hold=r.min_hold)
     return results, time.perf_counter() - start
 
 

@@ -266,17 +266,20 @@ class Session:
         return self._post({"grid": grid_field(grid)}, camera_pose, check_frames)
 
     def grasps(self, top_k: int = 1, *, n_candidates: int | None = None,
-               verify: int | None = None) -> list[Grasp]:
+               verify: int | None = None, min_hold: float | None = None) -> list[Grasp]:
         """The best ``top_k`` distinct grasps of the current completion, best first; an empty
         list when no candidate held (``last_reason`` says why). ``verify``: lift-test at most
         this many of the best on the completion first (each grasp's ``verification`` says what
-        its trials saw; default: the service's)."""
+        its trials saw; default: the service's). ``min_hold``: on a table, return force-closure
+        grasps down to this hold probability (default: the service's 0.5) to decide yourself."""
         self._need_id()
         params: dict[str, Any] = {"session_id": self.id, "top_k": int(top_k)}
         if n_candidates is not None:
             params["n_candidates"] = int(n_candidates)
         if verify is not None:
             params["verify"] = int(verify)
+        if min_hold is not None:
+            params["min_hold"] = float(min_hold)
         out = self.client.request("GET", "/grasp", params=params).json()
         self.last_reason = out.get("reason")
         self.last_obstacle_voxels = int(out.get("obstacle_voxels", 0))
