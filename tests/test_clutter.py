@@ -47,3 +47,40 @@ def test_the_obstacles_seen_are_the_neighbours_not_the_target():
     to_neighbours = np.min([closest_point(m, seen.centres)[1] for m in scene.neighbours], axis=0)
     assert np.median(to_neighbours) < 0.01  # the sensor's noise and the voxels' pitch
     assert (to_target > 0.01).mean() > 0.95
+
+
+def test_the_failures_figure_colours_target_neighbours_and_table_apart(tmp_path):
+    """clutter_failures.png's panels: the target orange, a neighbour blue, the table green, seen
+    from above the table, with a legend; the heading wrapped to the figure's width."""
+    from types import SimpleNamespace
+
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import trimesh
+    from PIL import Image
+
+    from grasp.evaluate.failure_figures import failures_figure
+    from grasp.planner import plan
+    from grasp_client.wire import SupportPlane
+
+    target = trimesh.creation.box(extents=[0.06, 0.05, 0.08])
+    target.apply_translation([0.0, 0.0, 0.04])
+    neighbour = trimesh.creation.box(extents=[0.05, 0.05, 0.1])
+    neighbour.apply_translation([0.12, 0.0, 0.05])
+    best = plan(target, n_candidates=16, seed=0, top_k=1,
+                support_plane=SupportPlane(np.array([0.0, 0.0, 1.0]), 0.0))[0]
+    record = {"success": False, "reason": "a neighbour moved 4 cm", "kind": best.kind,
+              "palm_pose": np.asarray(best.palm_pose).tolist(),
+              "planned_joints_deg": list(best.joints_deg)}
+    raw = [SimpleNamespace(job=SimpleNamespace(table="clutter", index=0), object_ids=["box"],
+                           record={"rows": {"row": record}})]
+    heading = "Clutter: a heading far longer than one panel is wide, which must wrap " * 2
+    path = failures_figure(raw, tmp_path, plt, "clutter", "row", lambda r: [target, neighbour],
+                           lambda r, o: "box: ", heading, "clutter_failures.png", key="success")
+    image = np.asarray(Image.open(path).convert("RGB"), dtype=int)
+    r, g, b = image[..., 0], image[..., 1], image[..., 2]
+    assert ((r - b > 80) & (r > 150)).sum() > 200  # the target's orange
+    assert ((b - r > 60) & (b > 150)).sum() > 200  # the neighbour's blue
+    assert ((g - r > 15) & (g - b > 15)).sum() > 1000  # the table's green

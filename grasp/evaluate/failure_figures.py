@@ -61,7 +61,8 @@ def failures_figure(raw, out: Path, plt, table: str, row: str, scene, title, hea
                            HandDofs(record["planned_joints_deg"][0], 0.0, 0.0, 0.0))
         others = [(patch, TABLE_RGBA), *((m, NEIGHBOUR_RGBA) for m in meshes[1:])]
         with quiet_fds(1):
-            image = render_grasp(meshes[0], hand, width=260, height=260, others=others)[0]
+            image = render_grasp(meshes[0], hand, width=260, height=260, others=others,
+                                 above=(0.0, 0.0, 1.0))[0]  # the scenes' table: z = 0
         ax.imshow(image)
     width_in = fig.get_size_inches()[0]
     fig.suptitle(textwrap.fill(heading, int(HEADING_CHARS_PER_INCH * width_in)), fontsize=9)

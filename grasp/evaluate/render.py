@@ -28,11 +28,13 @@ FOV_DEG = 40.0
 
 
 def _views(
-    points: np.ndarray, palm_pose: np.ndarray
+    points: np.ndarray, palm_pose: np.ndarray, above: np.ndarray | None = None
 ) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
     """(eye, target, up) of two cameras framing (n, 3) ``points`` (mesh corners, hand links).
 
     One looks across the fingers' closing plane from the side, one at the palm past the object.
+    ``above`` (a unit vector, a table's normal): a camera that would look from below is mirrored
+    to the same height above, so that no table hides the grasp.
     """
     x, y, z = palm_pose[:3, 0], palm_pose[:3, 1], palm_pose[:3, 2]
     lo, hi = points.min(axis=0), points.max(axis=0)
@@ -44,6 +46,8 @@ def _views(
     views = []
     for direction, up in ((side, z), (front, y)):
         direction = direction / np.linalg.norm(direction)
+        if above is not None and np.dot(direction, above) < 0.0:
+            direction = direction - 2.0 * np.dot(direction, above) * above
         up = up - np.dot(up, direction) * direction
         views.append((target + distance * direction, target, up / np.linalg.norm(up)))
     return views
@@ -56,10 +60,12 @@ def render_grasp(
     width: int = 480,
     height: int = 480,
     others: Sequence[tuple[trimesh.Trimesh, Sequence[float]]] = (),
+    above: Sequence[float] | None = None,
 ) -> list[np.ndarray]:
     """Render ``result``'s hand on ``mesh`` (the object, :class:`GraspWorld`'s orange) from two
     viewpoints; ``others``: more meshes drawn beside it, each (mesh, RGBA), such as the table and
-    the neighbours (pictured only: the hand's pose is the result's).
+    the neighbours (pictured only: the hand's pose is the result's); ``above``: the table's
+    normal, the side every camera looks from.
 
     Returns
     -------
@@ -80,7 +86,8 @@ def render_grasp(
         hand = np.array([pose[:3, 3] for pose in world.link_poses().values()])
         points = np.vstack([mesh.bounds, *(o.bounds for o, _ in others), hand,
                             hand + 0.06 * result.palm_pose[:3, 2]])
-        for eye, target, up in _views(points, np.asarray(result.palm_pose)):
+        normal = None if above is None else np.asarray(above, float) / np.linalg.norm(above)
+        for eye, target, up in _views(points, np.asarray(result.palm_pose), normal):
             view = world.client.computeViewMatrix(eye.tolist(), target.tolist(), up.tolist())
             proj = world.client.computeProjectionMatrixFOV(FOV_DEG, width / height, 0.01, 5.0)
             _, _, rgba, _, _ = world.client.getCameraImage(
