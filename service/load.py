@@ -26,6 +26,7 @@ import argparse
 import asyncio
 import contextlib
 import ipaddress
+import itertools
 import json
 import os
 import sys
@@ -241,7 +242,7 @@ async def _neighbour(args, views: list[dict], tally: Tally, started: asyncio.Eve
             r = await client.post("/views", json=payload)
             r.raise_for_status()
             session_id = r.json()["session_id"]
-        asked = iter(range(10**9))
+        asked = itertools.count()
 
         async def keep_asking() -> None:
             while True:

@@ -17,6 +17,7 @@ FAILURE_FIGURE_EXAMPLES = 12
 TARGET_RGBA = (0.85, 0.55, 0.3, 1.0)
 NEIGHBOUR_RGBA = (0.35, 0.55, 0.85, 1.0)
 TABLE_RGBA = (0.62, 0.76, 0.58, 1.0)
+HAND_RGBA = (0.45, 0.45, 0.5, 1.0)  # the legend's: the palm is darker, the fingers lighter
 #: Characters of the heading per inch of figure width (9-point type).
 HEADING_CHARS_PER_INCH = 14
 
@@ -47,9 +48,11 @@ def failures_figure(raw, out: Path, plt, table: str, row: str, scene, title, hea
                              layout="constrained")
     for ax in axes.flat:
         ax.axis("off")
+    with_neighbours = False
     for ax, r in zip(axes.flat, failed, strict=False):
         record = r.record["rows"][row]
         meshes = scene(r)
+        with_neighbours |= len(meshes) > 1
         ax.set_title(textwrap.fill(title(r, record) + record["reason"], 44), fontsize=7)
         lo, hi = trimesh.util.concatenate(meshes).bounds
         patch = trimesh.creation.box([1.2 * (hi - lo)[0] + 0.02, 1.2 * (hi - lo)[1] + 0.02,
@@ -66,8 +69,8 @@ def failures_figure(raw, out: Path, plt, table: str, row: str, scene, title, hea
         ax.imshow(image)
     width_in = fig.get_size_inches()[0]
     fig.suptitle(textwrap.fill(heading, int(HEADING_CHARS_PER_INCH * width_in)), fontsize=9)
-    parts = [("target", TARGET_RGBA), ("table", TABLE_RGBA), ("hand", (0.45, 0.45, 0.5, 1.0))]
-    if any(len(scene(r)) > 1 for r in failed):
+    parts = [("target", TARGET_RGBA), ("table", TABLE_RGBA), ("hand", HAND_RGBA)]
+    if with_neighbours:
         parts.insert(1, ("neighbours", NEIGHBOUR_RGBA))
     fig.legend(handles=[Patch(color=rgba, label=label) for label, rgba in parts],
                loc="outside lower center", ncols=len(parts), fontsize=7, frameon=False)
